@@ -1,0 +1,121 @@
+"""Configuration base classes (the nerfstudio ``_target`` / ``setup()`` pattern).
+
+A component is a dataclass config whose class attribute ``_target`` names the
+class it builds; ``config.setup(**kwargs)`` returns ``_target(config, **kwargs)``.
+``_target`` is a class, or a ``"module:attr"`` string resolved on first use (so a
+config can be declared before the class it builds).
+
+Configs are plain dataclasses of numbers, strings, tuples and nested configs, so
+:func:`to_dict` / :func:`update_from_dict` round-trip them through JSON exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import typing
+from typing import Any, ClassVar
+
+from .errors import ConfigError
+
+
+def resolve_target(target: Any) -> Any:
+    """A class, or a ``"package.module:attr"`` string, -> the object."""
+    if isinstance(target, str):
+        module, _, attr = target.partition(":")
+        obj = importlib.import_module(module)
+        for part in attr.split("."):
+            obj = getattr(obj, part)
+        return obj
+    return target
+
+
+@dataclasses.dataclass
+class InstantiateConfig:
+    """Base config: ``setup(**kwargs)`` builds ``_target(self, **kwargs)``."""
+
+    _target: ClassVar[Any] = None
+
+    def setup(self, **kwargs):
+        target = resolve_target(type(self)._target)
+        if target is None:
+            raise ConfigError(f"{type(self).__name__} has no _target to build")
+        return target(self, **kwargs)
+
+
+def to_dict(config: Any) -> Any:
+    """Dataclass tree -> JSON-able dict (tuples become lists)."""
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        return {f.name: to_dict(getattr(config, f.name)) for f in dataclasses.fields(config)}
+    if isinstance(config, (list, tuple)):
+        return [to_dict(v) for v in config]
+    if isinstance(config, dict):
+        return {k: to_dict(v) for k, v in config.items()}
+    if hasattr(config, "__fspath__"):
+        return str(config)
+    return config
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if value is None:
+        return None
+    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, where)
+            except (ConfigError, TypeError, ValueError):
+                continue
+        raise ConfigError(f"config value {where} = {value!r} does not fit {hint}")
+    if origin is typing.Literal:
+        if value not in args:
+            raise ConfigError(f"config value {where} = {value!r} must be one of {list(args)}")
+        return value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config value {where} must be a list, got {value!r}")
+        inner = args[0] if args else Any
+        items = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"config value {where} must be true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config value {where} must be an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"config value {where} must be a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"config value {where} must be a string, got {value!r}")
+        return value
+    return value
+
+
+def update_from_dict(config: Any, data: dict, where: str = "config") -> Any:
+    """Return a copy of dataclass ``config`` with the values of ``data`` applied.
+
+    Unknown keys and values of the wrong type raise :class:`ConfigError` naming
+    the key. Nested dataclasses are updated recursively.
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where} must be a mapping of settings, got {type(data).__name__}")
+    hints = typing.get_type_hints(type(config))
+    names = {f.name for f in dataclasses.fields(config)}
+    changes = {}
+    for key, value in data.items():
+        if key not in names:
+            raise ConfigError(f"unknown setting {where}.{key}; known settings: {', '.join(sorted(names))}")
+        current = getattr(config, key)
+        if dataclasses.is_dataclass(current) and not isinstance(current, type):
+            changes[key] = update_from_dict(current, value, f"{where}.{key}")
+        else:
+            changes[key] = _coerce(value, hints.get(key, Any), f"{where}.{key}")
+    return dataclasses.replace(config, **changes)

@@ -1,0 +1,1 @@
+"""Scenes: NAF pickles (safe IO), built-in phantoms, projectors and the simulator."""
