@@ -1,0 +1,366 @@
+"""NAF / TIGRE scene pickles (SPEC §1): safe loading, validation, atomic saving.
+
+A scene pickle is a plain dict (see SPEC §1 for the keys). Unpickling can run
+arbitrary code, so :func:`load_naf` uses a restricted unpickler that resolves
+only the handful of numpy names needed to rebuild arrays, dtypes and scalars,
+and refuses every other global *before* anything is called.
+
+Units: the file holds lengths in mm and projections as line integrals with
+lengths in metres; :class:`~kneas_method.geometry.Geometry` converts to model
+units. ``scene.image`` stays in data units.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import pickle
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import SceneError
+from ..geometry import Geometry
+from .scene import Scene, Views
+
+# Geometry keys (mm) that Geometry.from_mm takes.
+GEOMETRY_KEYS = ("mode", "DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "offOrigin", "offDetector")
+REQUIRED_KEYS = ("mode", "DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "train", "val")
+# Keys handled explicitly (everything else goes to scene.meta).
+_STRUCTURAL_KEYS = set(GEOMETRY_KEYS) | {"train", "val", "image", "labels", "sVoxel", "sDetector"}
+# scene.meta key holding the file's exact geometry values, so save(load(f)) writes them back bit for bit.
+GEOMETRY_MM_META = "geometry_mm"
+# Default values of the "how it was generated" keys, written when a scene lacks them.
+DEFAULT_META = {
+    "accuracy": 0.5,
+    "filter": None,
+    "totalAngle": 180.0,
+    "startAngle": 0.0,
+    "convert": False,
+    "rescale_slope": 1.0,
+    "rescale_intercept": 0.0,
+    "normalize": True,
+    "noise": 0,
+    "randomAngle": True,
+}
+
+
+# --------------------------------------------------------------------------- safe unpickling
+def _allowed_globals() -> dict[tuple[str, str], Any]:
+    """The only globals a scene pickle may name: what numpy needs for arrays, dtypes and scalars."""
+    import codecs
+
+    try:  # numpy >= 2
+        from numpy._core import multiarray as _ma
+        from numpy._core import numeric as _num
+    except ImportError:  # pragma: no cover - numpy 1.x
+        from numpy.core import multiarray as _ma
+        from numpy.core import numeric as _num
+
+    def _encode(obj, encoding="utf-8", errors="strict"):
+        # Protocol 0-2 pickles of bytes use _codecs.encode(text, 'latin1'); allow only that.
+        if not isinstance(obj, str) or encoding not in ("latin1", "latin-1", "iso-8859-1"):
+            raise SceneError("_codecs.encode may only re-encode latin-1 text")
+        return codecs.encode(obj, encoding, errors)
+
+    table: dict[tuple[str, str], Any] = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype, ("_codecs", "encode"): _encode}
+    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        table[(mod, "_reconstruct")] = _ma._reconstruct
+        table[(mod, "scalar")] = _ma.scalar
+    if hasattr(_num, "_frombuffer"):  # protocol 5, in-band buffers
+        for mod in ("numpy.core.numeric", "numpy._core.numeric"):
+            table[(mod, "_frombuffer")] = _num._frombuffer
+    try:
+        import numpy.dtypes as _dtypes
+
+        for name in dir(_dtypes):
+            obj = getattr(_dtypes, name)
+            if name.endswith("DType") and isinstance(obj, type) and issubclass(obj, np.dtype):
+                table[("numpy.dtypes", name)] = obj
+    except ImportError:  # pragma: no cover - numpy < 1.25
+        pass
+    return table
+
+
+class _SafeUnpickler(pickle.Unpickler):
+    """Unpickler that resolves only plain-data numpy globals; anything else raises SceneError."""
+
+    def __init__(self, file, label: str):
+        super().__init__(file)
+        self._label = label
+        self._table = _allowed_globals()
+
+    def find_class(self, module: str, name: str):  # noqa: D401 - pickle API
+        obj = self._table.get((module, name))
+        if obj is None:
+            raise SceneError(
+                f"{self._label} is not a plain-data scene pickle: it asks for {module}.{name}, "
+                "which kneas refuses to load because unpickling it could run code"
+            )
+        return obj
+
+    def persistent_load(self, pid):
+        raise SceneError(f"{self._label} is not a plain-data scene pickle: it uses persistent ids, which kneas refuses to load")
+
+
+def safe_load_pickle(path) -> Any:
+    """Unpickle ``path`` allowing only plain data (dicts, lists, numbers, strings, numpy arrays/dtypes/scalars)."""
+    path = Path(path)
+    label = path.name
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SceneError(f"{path}: no such file; check the path") from None
+    except IsADirectoryError:
+        raise SceneError(f"{path} is a directory, not a scene pickle; give the .pickle file inside it") from None
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read it ({exc.strerror or exc}); check the file's permissions") from None
+    try:
+        return _SafeUnpickler(io.BytesIO(data), label).load()
+    except SceneError:
+        raise
+    except Exception as exc:  # UnpicklingError, EOFError, ValueError, ...
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        raise SceneError(f"{label} is not a readable scene pickle ({msg}); re-create it or re-download it") from None
+
+
+# --------------------------------------------------------------------------- validation helpers
+def _fail(label: str, msg: str) -> SceneError:
+    return SceneError(f"{label}: {msg}")
+
+
+def _positive_vector(d: dict, key: str, n: int, label: str, integer: bool) -> np.ndarray:
+    try:
+        arr = np.asarray(d[key], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise _fail(label, f"{key} is {d[key]!r}; it must be {n} {'integers' if integer else 'numbers'}") from None
+    if arr.size != n:
+        raise _fail(label, f"{key} has {arr.size} entries; it must have {n}")
+    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise _fail(label, f"{key} is {tuple(arr.tolist())}; every entry must be a finite positive value")
+    if integer and np.any(arr != np.round(arr)):
+        raise _fail(label, f"{key} is {tuple(arr.tolist())}; every entry must be a whole number")
+    return arr
+
+
+def _finite_vector(d: dict, key: str, n: int, label: str) -> np.ndarray:
+    if key not in d or d[key] is None:
+        return np.zeros(n)
+    try:
+        arr = np.asarray(d[key], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise _fail(label, f"{key} is {d[key]!r}; it must be {n} numbers (mm)") from None
+    if arr.size != n or not np.all(np.isfinite(arr)):
+        raise _fail(label, f"{key} is {d[key]!r}; it must be {n} finite numbers (mm)")
+    return arr
+
+
+def _positive_scalar(d: dict, key: str, label: str) -> float:
+    try:
+        arr = np.asarray(d[key], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise _fail(label, f"{key} is {d[key]!r}; it must be a positive number (mm)") from None
+    if arr.size != 1 or not math.isfinite(float(arr[0])) or float(arr[0]) <= 0:
+        raise _fail(label, f"{key} is {d[key]!r}; it must be one finite positive number (mm)")
+    return float(arr[0])
+
+
+def _numeric_array(value, key: str, label: str) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+        raise _fail(label, f"{key} has dtype {arr.dtype}; it must be a numeric array")
+    return arr
+
+
+def _views(d: dict, key: str, n_u: int, n_v: int, label: str) -> Views:
+    part = d[key]
+    if not isinstance(part, dict):
+        raise _fail(label, f"{key} is a {type(part).__name__}; it must be a dict with 'angles' and 'projections'")
+    for sub in ("angles", "projections"):
+        if sub not in part:
+            raise _fail(label, f"{key}.{sub} is missing; a NAF scene needs {key} = {{'angles': [N], 'projections': [N, nV, nU]}}")
+    angles = _numeric_array(part["angles"], f"{key}.angles", label).astype(np.float64).reshape(-1)
+    proj = _numeric_array(part["projections"], f"{key}.projections", label)
+    if proj.ndim == 2 and len(angles) == 1:
+        proj = proj[None]
+    n = len(angles)
+    if proj.ndim != 3 or proj.shape[1:] != (n_v, n_u):
+        raise _fail(
+            label,
+            f"{key}.projections has shape {tuple(proj.shape)} but nDetector is ({n_u}, {n_v}); "
+            f"expected ({proj.shape[0] if proj.ndim >= 1 else n}, {n_v}, {n_u})",
+        )
+    if proj.shape[0] != n:
+        raise _fail(label, f"{key} has {n} angles but {proj.shape[0]} projections; they must match one to one")
+    if n == 0:
+        raise _fail(label, f"{key} has no views; it needs at least one angle and projection")
+    if not np.all(np.isfinite(angles)):
+        raise _fail(label, f"{key}.angles contains NaN or inf; every angle must be a finite number of radians")
+    proj = proj.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(proj)):
+        bad = int(np.count_nonzero(~np.isfinite(proj)))
+        raise _fail(label, f"{key}.projections contains {bad} NaN/inf values; fix or drop those views")
+    if np.any(proj < 0):
+        raise _fail(
+            label,
+            f"{key}.projections has negative values (min {float(proj.min()):.4g}); line integrals must be >= 0 "
+            "(clip them to 0 before saving)",
+        )
+    return Views(angles=angles, projections=np.ascontiguousarray(proj))
+
+
+def _attach_phantom(scene: Scene) -> None:
+    """Give a built-in scene its material labels, names and exact membership function."""
+    name = scene.meta.get("phantom")
+    if not isinstance(name, str):
+        return
+    try:
+        from .phantoms import PHANTOM_NAMES, get_phantom
+    except ImportError:  # phantoms not available in this build
+        return
+    if name not in PHANTOM_NAMES:
+        return
+    phantom = get_phantom(name)
+    geometry = scene.geometry
+    if scene.labels is None:
+        scene.labels = np.asarray(phantom.labels(geometry), dtype=np.uint8)
+    scene.materials = tuple(phantom.materials)
+    scene.membership = lambda pts_model: phantom.label_at(geometry.model_to_mm(np.asarray(pts_model, dtype=np.float64)))
+
+
+# --------------------------------------------------------------------------- public API
+def scene_from_dict(d: Any, label: str, *, name: str = "scene", source: str = "") -> Scene:
+    """Validate a NAF scene dict and build a :class:`Scene` (raises one-line SceneError)."""
+    if not isinstance(d, dict):
+        raise _fail(label, f"the pickle holds a {type(d).__name__}, not a dict; a NAF scene is a dict with keys DSD, DSO, nDetector, ..., train, val")
+    for key in REQUIRED_KEYS:
+        if key not in d:
+            raise _fail(label, f"key '{key}' is missing; a NAF scene needs {', '.join(REQUIRED_KEYS)}")
+    mode = d["mode"]
+    if mode not in ("cone", "parallel"):
+        raise _fail(label, f"mode is {mode!r}; it must be 'cone' or 'parallel'")
+    dsd = _positive_scalar(d, "DSD", label)
+    dso = _positive_scalar(d, "DSO", label)
+    n_det = _positive_vector(d, "nDetector", 2, label, integer=True).astype(np.int64)
+    d_det = _positive_vector(d, "dDetector", 2, label, integer=False)
+    n_vox = _positive_vector(d, "nVoxel", 3, label, integer=True).astype(np.int64)
+    d_vox = _positive_vector(d, "dVoxel", 3, label, integer=False)
+    off_origin = _finite_vector(d, "offOrigin", 3, label)
+    off_det = _finite_vector(d, "offDetector", 2, label)
+    if mode == "cone" and dsd <= dso:
+        raise _fail(label, f"DSD ({dsd:g} mm) must be larger than DSO ({dso:g} mm): the detector sits behind the rotation axis")
+    geometry_mm = {
+        "mode": mode, "DSD": d["DSD"], "DSO": d["DSO"], "nDetector": d["nDetector"], "dDetector": d["dDetector"],
+        "nVoxel": d["nVoxel"], "dVoxel": d["dVoxel"],
+        "offOrigin": d.get("offOrigin", off_origin), "offDetector": d.get("offDetector", off_det),
+    }
+    geometry = Geometry.from_mm(
+        mode=mode, DSD=dsd, DSO=dso, nDetector=n_det, dDetector=d_det, nVoxel=n_vox, dVoxel=d_vox,
+        offOrigin=off_origin, offDetector=off_det,
+    )
+    n_u, n_v = int(n_det[0]), int(n_det[1])
+    train = _views(d, "train", n_u, n_v, label)
+    val = _views(d, "val", n_u, n_v, label)
+
+    image = d.get("image")
+    if image is not None:
+        image = _numeric_array(image, "image", label)
+        if tuple(image.shape) != tuple(int(v) for v in n_vox):
+            raise _fail(label, f"image has shape {tuple(image.shape)} but nVoxel is {tuple(int(v) for v in n_vox)}; they must be equal")
+        image = np.ascontiguousarray(image.astype(np.float32, copy=False))
+        if not np.all(np.isfinite(image)):
+            raise _fail(label, "image contains NaN or inf; the ground-truth volume must be finite")
+    labels = d.get("labels")
+    if labels is not None:
+        labels = _numeric_array(labels, "labels", label)
+        if tuple(labels.shape) != tuple(int(v) for v in n_vox):
+            raise _fail(label, f"labels has shape {tuple(labels.shape)} but nVoxel is {tuple(int(v) for v in n_vox)}; they must be equal")
+        if labels.min(initial=0) < 0 or labels.max(initial=0) > 255:
+            raise _fail(label, "labels must be integers in 0..255 (0 = air)")
+        labels = np.ascontiguousarray(labels.astype(np.uint8))
+
+    meta = {k: v for k, v in d.items() if k not in _STRUCTURAL_KEYS}
+    meta[GEOMETRY_MM_META] = geometry_mm
+    scene = Scene(name=name, geometry=geometry, train=train, val=val, image=image, labels=labels, meta=meta, source=source)
+    _attach_phantom(scene)
+    return scene
+
+
+def load_naf(path, *, name: str | None = None) -> Scene:
+    """Load a NAF/TIGRE scene pickle safely.
+
+    Args:
+        path: the ``.pickle`` file.
+        name: scene name (default: the file's stem).
+
+    Returns:
+        A validated :class:`Scene`; ``scene.meta`` holds the non-geometry keys.
+
+    Raises:
+        SceneError: unsafe pickle (before anything in it runs), unreadable file, or
+            a malformed scene; the one-line message names the key and the fix.
+    """
+    path = Path(path)
+    data = safe_load_pickle(path)
+    return scene_from_dict(data, path.name, name=name or path.stem, source=f"file {path}")
+
+
+def scene_to_dict(scene: Scene) -> dict:
+    """The NAF dict for ``scene`` (inverse of :func:`scene_from_dict`)."""
+    geometry_mm = scene.meta.get(GEOMETRY_MM_META)
+    try:
+        exact = isinstance(geometry_mm, dict) and Geometry.from_mm(**geometry_mm) == scene.geometry
+    except Exception:  # malformed or stale meta: fall back to the geometry itself
+        exact = False
+    if exact:
+        geo = dict(geometry_mm)
+    else:
+        full = scene.geometry.to_mm()
+        geo = {k: full[k] for k in GEOMETRY_KEYS}
+    out: dict[str, Any] = dict(DEFAULT_META)
+    out.update({k: v for k, v in scene.meta.items() if k != GEOMETRY_MM_META})
+    out.update(geo)
+    out["numTrain"] = len(scene.train)
+    out["numVal"] = len(scene.val)
+    out["train"] = {"angles": np.asarray(scene.train.angles), "projections": np.asarray(scene.train.projections, dtype=np.float32)}
+    out["val"] = {"angles": np.asarray(scene.val.angles), "projections": np.asarray(scene.val.projections, dtype=np.float32)}
+    if scene.image is not None:
+        out["image"] = np.asarray(scene.image, dtype=np.float32)
+    if scene.labels is not None:
+        out["labels"] = np.asarray(scene.labels, dtype=np.uint8)
+    return out
+
+
+def atomic_write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temp file in the same folder + ``os.replace``)."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    except OSError as exc:
+        raise SceneError(f"cannot write {path} ({exc.strerror or exc}); choose a writable output path") from None
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise SceneError(f"cannot write {path} ({exc.strerror or exc}); choose a writable output path") from None
+        raise
+
+
+def save_naf(scene: Scene, path) -> Path:
+    """Save ``scene`` as a NAF pickle (protocol 4), atomically. Returns the path."""
+    path = Path(path)
+    atomic_write_bytes(path, pickle.dumps(scene_to_dict(scene), protocol=4))
+    return path

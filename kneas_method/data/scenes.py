@@ -1,0 +1,115 @@
+"""Resolve a scene name or path to a :class:`Scene` (used by ``kneas-train --scene``).
+
+Order: an existing file is loaded as a NAF pickle; a built-in name (``foot``, ``jaw``,
+``chest``, ``abdomen``) uses the public benchmark ``<data_dir>/<name>_50.pickle`` when
+present, otherwise the built-in phantom simulated once with the default
+:class:`SimulationConfig` and cached as ``<cache_dir>/<name>_50.pickle``. The cache
+records a key derived from the simulation config, the phantom's description and the
+simulator version; a mismatch regenerates the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Callable, Optional
+
+from ..errors import SceneError
+from .naf import load_naf, save_naf
+from .scene import Scene
+from .simulate import SIMULATOR_VERSION, SimulationConfig, simulate_phantom
+
+CACHE_KEY_META = "cache_key"
+
+
+def builtin_names() -> tuple[str, ...]:
+    """Names of the built-in phantom scenes."""
+    from .phantoms import PHANTOM_NAMES
+
+    return tuple(PHANTOM_NAMES)
+
+
+def default_cache_dir() -> Path:
+    """``$KNEAS_CACHE`` or ``~/.cache/kneas/scenes``."""
+    env = os.environ.get("KNEAS_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "kneas" / "scenes"
+
+
+def cache_key(name: str, cfg: SimulationConfig) -> str:
+    """A short hash of everything that determines a built-in scene's content."""
+    from .phantoms import get_phantom
+
+    phantom = get_phantom(name)
+    payload = {"name": name, "config": cfg.to_dict(), "phantom": phantom.describe(), "simulator": SIMULATOR_VERSION}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def builtin_scene(
+    name: str,
+    *,
+    cache_dir=None,
+    cfg: SimulationConfig | None = None,
+    progress: Optional[Callable[[str], None]] = None,
+) -> Scene:
+    """The built-in phantom scene ``name``, simulated once and cached (atomic write)."""
+    cfg = cfg or SimulationConfig()
+    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    path = cache_dir / f"{name}_{cfg.n_train}.pickle"
+    key = cache_key(name, cfg)
+    if path.is_file():
+        try:
+            scene = load_naf(path, name=name)
+            if scene.meta.get(CACHE_KEY_META) == key:
+                scene.source = f"built-in phantom {name} (cached at {path})"
+                return scene
+        except SceneError:
+            pass  # damaged or foreign file: regenerate it
+    scene = simulate_phantom(name, cfg, progress=progress)
+    scene.meta[CACHE_KEY_META] = key
+    save_naf(scene, path)
+    scene = load_naf(path, name=name)  # exactly what later runs will see
+    scene.source = f"built-in phantom {name} (cached at {path})"
+    return scene
+
+
+def resolve_scene(
+    spec: str,
+    *,
+    data_dir="data",
+    cache_dir=None,
+    progress: Optional[Callable[[str], None]] = None,
+) -> Scene:
+    """Turn ``--scene`` into a :class:`Scene`.
+
+    Args:
+        spec: a path to a NAF ``.pickle`` file, or a built-in name.
+        data_dir: where public benchmark pickles (``<name>_50.pickle``) are looked for.
+        cache_dir: where simulated built-in scenes are cached (default
+            ``$KNEAS_CACHE`` or ``~/.cache/kneas/scenes``).
+        progress: optional ``progress(message)`` while a built-in scene is simulated.
+
+    Returns:
+        The scene; ``scene.source`` says where it came from.
+    """
+    spec = str(spec)
+    path = Path(spec).expanduser()
+    if path.is_file():
+        scene = load_naf(path)
+        scene.source = f"file {path}"
+        return scene
+    names = builtin_names()
+    if spec in names:
+        public = Path(data_dir) / f"{spec}_50.pickle"
+        if public.is_file():
+            scene = load_naf(public, name=spec)
+            scene.source = f"public benchmark {public}"
+            return scene
+        return builtin_scene(spec, cache_dir=cache_dir, progress=progress)
+    if path.is_dir():
+        raise SceneError(f"--scene {spec} is a directory; give a NAF .pickle file or a built-in scene ({', '.join(names)})")
+    raise SceneError(
+        f"--scene {spec!r} is neither an existing file nor a built-in scene; "
+        f"use one of {', '.join(names)} or the path of an existing NAF .pickle file"
+    )
