@@ -1,0 +1,56 @@
+"""NAF baseline field (SPEC §2, §6): the same encoding, an MLP to one output, mu >= 0, no SDF.
+
+Architecture (our choice; NAF itself uses a 4x32 MLP with a sigmoid output):
+encoding -> Linear(F -> 64), ReLU, Linear(64 -> 64), ReLU, Linear(64 -> 1), then
+``softplus`` (default; smooth, unbounded above) or ``relu`` / ``sigmoid``
+(the latter caps mu at 1, like NAF on normalised volumes). Output in data units (1/m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from ..config import InstantiateConfig
+from ..errors import ConfigError
+from .sdf_field import encode_points
+
+_ACTIVATIONS = {"softplus": F.softplus, "relu": F.relu, "sigmoid": torch.sigmoid}
+
+
+@dataclass
+class NAFFieldConfig(InstantiateConfig):
+    """Attributes: hidden_dim (64), num_hidden_layers (2), activation (softplus|relu|sigmoid), bound (1.0, model units)."""
+
+    _target = "kneas_method.fields.naf_field:NAFField"
+    hidden_dim: int = 64
+    num_hidden_layers: int = 2
+    activation: str = "softplus"
+    bound: float = 1.0
+
+
+class NAFField(nn.Module):
+    """``forward(points [P, 3] model units) -> mu [P]`` (data units, >= 0). ``has_sdf = False``."""
+
+    has_sdf = False
+
+    def __init__(self, config: NAFFieldConfig, *, encoding: nn.Module, num_materials: int | None = None):
+        super().__init__()
+        if config.activation not in _ACTIVATIONS:
+            raise ConfigError(f"NAF field activation {config.activation!r} is unknown; choose one of {sorted(_ACTIVATIONS)}")
+        self.config = config
+        self.encoding = encoding
+        sizes = [encoding.n_output_dims] + [config.hidden_dim] * config.num_hidden_layers + [1]
+        layers: list[nn.Module] = []
+        for i in range(len(sizes) - 1):
+            layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+            if i < len(sizes) - 2:
+                layers.append(nn.ReLU())
+        self.mlp = nn.Sequential(*layers)
+        self._act = _ACTIVATIONS[config.activation]
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self._act(self.mlp(encode_points(self.encoding, points, self.config.bound))[:, 0])

@@ -1,0 +1,95 @@
+"""SDF field (SPEC §2): encoding -> Linear(F -> 64), ReLU, Linear(64 -> K + 8).
+
+The network maps a point to ``K`` signed distances ``d_1..d_K`` (model units,
+negative inside a material's surface) and a feature vector ``f`` (8-dim by
+default) that the attenuation networks read. :class:`SurfaceBoundary` is the
+surface boundary function ``Omega(d, s) = sigmoid(-s d)`` with one learnable
+sharpness ``s`` (initialised at 20), shared by all materials.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from ..config import InstantiateConfig
+
+
+def encode_points(encoding: nn.Module, points: torch.Tensor, bound: float) -> torch.Tensor:
+    """Encode points [P, 3] (model units) -> [P, F].
+
+    Points are divided by ``bound`` and clamped to ``[-1, 1]^3``, the encoding's
+    domain; outside the box the encoding is constant (so ``d`` has zero spatial
+    gradient there: the eikonal term skips such points, see ``losses.eikonal``).
+    """
+    x = (points / bound).clamp(-1.0, 1.0)
+    return encoding(x).float()
+
+
+@dataclass
+class SDFFieldConfig(InstantiateConfig):
+    """SDF network on top of an encoding.
+
+    Attributes:
+        hidden_dim: width of the single hidden layer (paper: 64).
+        feature_dim: size of the feature vector ``f`` (paper: 8).
+        bound: points are divided by this before encoding (model units; the
+            scene fits the unit sphere, so 1.0).
+        distance_bias: initial bias of the distance outputs (model units); a
+            small positive value starts every material "outside" (``Omega < 0.5``).
+    """
+
+    _target = "kneas_method.fields.sdf_field:SDFField"
+    hidden_dim: int = 64
+    feature_dim: int = 8
+    bound: float = 1.0
+    distance_bias: float = 0.0
+
+
+class SDFField(nn.Module):
+    """Encoding + SDF MLP. ``forward(points [P, 3]) -> (distances [P, K], features [P, feature_dim])``.
+
+    ``has_sdf = True`` marks the field protocol the model uses (distances + features).
+    """
+
+    has_sdf = True
+
+    def __init__(self, config: SDFFieldConfig, *, encoding: nn.Module, num_materials: int):
+        super().__init__()
+        self.config = config
+        self.encoding = encoding
+        self.num_materials = int(num_materials)
+        self.feature_dim = config.feature_dim
+        self.mlp = nn.Sequential(
+            nn.Linear(encoding.n_output_dims, config.hidden_dim),
+            nn.ReLU(),
+            nn.Linear(config.hidden_dim, self.num_materials + config.feature_dim),
+        )
+        if config.distance_bias:
+            with torch.no_grad():
+                self.mlp[-1].bias[: self.num_materials] += config.distance_bias
+
+    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.mlp(encode_points(self.encoding, points, self.config.bound))
+        return out[:, : self.num_materials], out[:, self.num_materials :]
+
+    def distances(self, points: torch.Tensor) -> torch.Tensor:
+        """Signed distances only: [P, 3] -> [P, K] (model units)."""
+        return self.forward(points)[0]
+
+
+class SurfaceBoundary(nn.Module):
+    """``Omega(d, s) = sigmoid(-s * d)``: occupancy in (0, 1) from a signed distance.
+
+    One learnable scalar ``s`` (sharpness, 1/model unit), initialised at ``s_init``.
+    """
+
+    def __init__(self, s_init: float = 20.0):
+        super().__init__()
+        self.s = nn.Parameter(torch.tensor(float(s_init)))
+
+    def forward(self, distances: torch.Tensor) -> torch.Tensor:
+        """distances [..., K] -> occupancies [..., K]."""
+        return torch.sigmoid(-self.s * distances)

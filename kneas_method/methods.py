@@ -1,0 +1,142 @@
+"""The run configuration tree and the method table of SPEC §6.
+
+``TrainConfig`` is the complete, JSON-round-trippable configuration of a run
+(``config.to_dict`` -> JSON -> ``config.update_from_dict``). Settings left at
+``None`` are decided by the preset (``presets.resolve``); anything set
+explicitly (command line, JSON) wins over the preset.
+
+Each method is a :class:`~kneas_method.registry.MethodSpecification`
+registered under ``kneas.methods`` in ``pyproject.toml``; they differ only in
+configuration:
+
+| method | K | attenuation | selector | floater | bounds |
+|---|---|---|---|---|---|
+| neas-1m | 1 | single | soft (K = 1: mu_bar·Omega) | off | wide defaults or given |
+| neas-2m | 2 | independent | hard | off | automatic or given |
+| kselector | K (3) | independent | soft | off | automatic or given |
+| kselector-floater | K (3) | independent | soft | on | automatic or given |
+| kselector-shared | K (3) | shared | soft | off | automatic or given |
+| k-neas | K (3) | shared | soft | on | automatic or given |
+| naf | — | NAF field (hash grid + MLP, no SDF) | — | off | — |
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Optional
+
+from .datamanagers.ct import CTDataManagerConfig
+from .model import ModelConfig
+from .registry import MethodSpecification
+
+PRESETS = ("auto", "paper", "cpu", "tiny")
+BOUNDS_SOURCES = ("wide", "auto", "none")
+
+
+@dataclass
+class TrainerConfig:
+    """Optimisation and bookkeeping. ``None`` = the preset's value.
+
+    Attributes:
+        epochs: training epochs (one step per training projection per epoch; paper 1000).
+        prior_epochs: epochs of the single-material prior model trained for the
+            automatic bounds (SPEC §4); paper 1000.
+        lr: Adam learning rate (1e-3).
+        lr_decay_at: fraction of epochs after which the rate is multiplied by
+            ``lr_decay_factor`` (0.5 -> after 500 of 1000 epochs; factor 0.1).
+        eval_every / checkpoint_every: epochs between held-out evaluations /
+            checkpoints (0 = only at the end).
+        eval_chunk: rays per chunk when rendering full views for evaluation.
+        eval_views: held-out views rendered at intermediate evaluations (None = all).
+        log_every: steps between log lines.
+    """
+
+    epochs: Optional[int] = None
+    prior_epochs: Optional[int] = None
+    lr: float = 1e-3
+    lr_decay_at: float = 0.5
+    lr_decay_factor: float = 0.1
+    eval_every: Optional[int] = None
+    checkpoint_every: Optional[int] = None
+    eval_chunk: Optional[int] = None
+    eval_views: Optional[int] = None
+    log_every: int = 50
+
+
+@dataclass
+class TrainConfig:
+    """A whole training run.
+
+    Attributes:
+        method: the registered method name this config came from.
+        scene: built-in scene name or a path to a NAF pickle.
+        views: keep this many training views, spread uniformly (None = all).
+        preset: ``auto`` (paper with CUDA, else cpu), ``paper``, ``cpu`` or ``tiny``.
+        seed: seeds model initialisation and ray sampling.
+        output_dir: parent folder of run folders.
+        num_materials: K; overrides the method's default (None = method default).
+        dry_run: build the model, print the config and parameter count, don't train.
+        bounds: JSON file with ``{"alphas": [...], "betas": [...]}`` (data units, 1/m).
+        bounds_source: where bounds come from when neither ``bounds`` nor
+            ``model.alphas/betas`` are given: ``wide`` (NeAS defaults), ``auto``
+            (GMM on a prior single-material model, SPEC §4) or ``none`` (no SDF).
+        device: ``auto`` (cuda if available), ``cpu``, ``cuda``, ``cuda:1``...
+    """
+
+    method: str = "k-neas"
+    scene: str = "foot"
+    views: Optional[int] = None
+    preset: str = "auto"
+    seed: int = 0
+    output_dir: str = "outputs"
+    num_materials: Optional[int] = None
+    dry_run: bool = False
+    bounds: Optional[str] = None
+    bounds_source: str = "auto"
+    device: str = "auto"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    datamanager: CTDataManagerConfig = field(default_factory=CTDataManagerConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+
+
+def _config(method: str, *, K: int, attenuation: str = "shared", selector: str = "soft", floater: bool = False,
+            bounds_source: str = "auto", field_name: str = "sdf") -> TrainConfig:
+    return TrainConfig(
+        method=method,
+        bounds_source=bounds_source,
+        model=ModelConfig(field=field_name, attenuation=attenuation, selector=selector, num_materials=K, floater=floater),
+    )
+
+
+neas_1m = MethodSpecification(
+    config=_config("neas-1m", K=1, attenuation="single", bounds_source="wide"),
+    description="NeAS, one material (single attenuation MLP, wide NeAS bounds); also the prior for automatic bounds",
+)
+neas_2m = MethodSpecification(
+    config=_config("neas-2m", K=2, attenuation="independent", selector="hard"),
+    description="NeAS, two materials: independent attenuation MLPs and the hard selector (K = 2 only)",
+)
+kselector = MethodSpecification(
+    config=_config("kselector", K=3, attenuation="independent"),
+    description="ablation: independent attenuation MLPs + soft K-material selector, no floater loss",
+)
+kselector_floater = MethodSpecification(
+    config=_config("kselector-floater", K=3, attenuation="independent", floater=True),
+    description="ablation: independent attenuation MLPs + soft K-material selector + floater loss",
+)
+kselector_shared = MethodSpecification(
+    config=_config("kselector-shared", K=3, attenuation="shared"),
+    description="ablation: shared attenuation body with K heads + soft selector, no floater loss",
+)
+k_neas = MethodSpecification(
+    config=_config("k-neas", K=3, attenuation="shared", floater=True),
+    description="K-NeAS: shared attenuation body with K heads, soft K-material selector, floater loss (K default 3)",
+)
+naf = MethodSpecification(
+    config=dataclasses.replace(
+        _config("naf", K=1, field_name="naf", bounds_source="none"),
+        model=ModelConfig(field="naf", num_materials=1, floater=False, lambda_eikonal=0.0),
+    ),
+    description="NAF baseline: hash grid + MLP attenuation field, no surfaces",
+)

@@ -1,0 +1,323 @@
+"""CTModel: field + selector + Beer–Lambert renderer + losses, assembled from registered parts.
+
+Units: points and ray parameters are in **model units** (the scene scaled into
+the unit sphere); attenuation is in **data units** (1/m, what the NAF volume
+stores; the bounds ``alpha``/``beta`` are in data units too). The renderer
+converts segment lengths to metres with ``scale`` (model units per metre,
+``geometry.scale``), so a rendered line integral equals the projection ``p``.
+
+Components are chosen by registered name (``kneas.fields``, ``kneas.selectors``,
+``kneas.samplers``, ``kneas.losses``) and built through
+:func:`kneas_method.registry.load`, so a plugin's name works unchanged in a JSON
+config or on the command line. ``*_options`` dicts override the defaults of the
+named component's config (by field name).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional, Sequence, Union
+
+import torch
+from torch import nn
+
+from . import registry
+from .config import InstantiateConfig, update_from_dict
+from .errors import ConfigError
+from .renderer import RenderOutput, beer_lambert, sample_points, segment_lengths
+
+Options = dict[str, Union[int, float, str, bool]]
+
+
+def build_component(group: str, name: str, options: Optional[dict] = None, aliases: Sequence[str] = ()) -> InstantiateConfig:
+    """Config of the component registered as ``name`` in ``kneas.<group>``, with ``options`` applied.
+
+    ``aliases``: names tried first (e.g. ``attenuation-shared`` for ``shared``).
+    """
+    known = registry.names(group)
+    chosen = next((a for a in aliases if a in known), name)
+    obj = registry.load(group, chosen)
+    cfg = obj() if isinstance(obj, type) else dataclasses.replace(obj)
+    if not isinstance(cfg, InstantiateConfig):
+        raise ConfigError(f"the {group} entry point {chosen!r} is not a component config (an InstantiateConfig subclass)")
+    if options:
+        cfg = update_from_dict(cfg, _parse_option_strings(cfg, dict(options)), where=f"{group}:{chosen}")
+    return cfg
+
+
+def _parse_option_strings(cfg, options: dict) -> dict:
+    """Command-line option values arrive as strings when the type is unknown; read numbers/bools via JSON."""
+    import json
+    import typing
+
+    hints = typing.get_type_hints(type(cfg))
+    out = {}
+    for k, v in options.items():
+        if isinstance(v, str) and hints.get(k) is not str:
+            try:
+                v = json.loads(v)
+            except ValueError:
+                pass
+        if isinstance(v, int) and not isinstance(v, bool) and hints.get(k) in (float, Optional[float]):
+            v = float(v)
+        out[k] = v
+    return out
+
+
+@dataclass
+class ModelConfig(InstantiateConfig):
+    """The model's full configuration. ``None`` = decided by the preset (``presets.resolve``).
+
+    Attributes:
+        field: ``kneas.fields`` name of the main field: ``sdf`` (SDF + attenuation
+            + selector) or ``naf`` (attenuation directly, no surfaces).
+        encoding: ``kneas.fields`` name of the encoding: ``hashgrid`` or ``frequency``.
+        encoding_options: settings of the encoding config (e.g. ``num_levels``,
+            ``log2_hashmap_size``); None = the preset's.
+        attenuation: attenuation network: ``single``, ``shared``, ``independent``
+            (registered as ``attenuation-<name>``) or any registered name.
+        selector: ``kneas.selectors`` name: ``soft`` or ``hard``.
+        num_materials: K (signed distance fields / attenuation heads).
+        s_init: initial sharpness of ``Omega(d, s) = sigmoid(-s d)``.
+        alphas, betas: attenuation bounds per material, data units (1/m); None =
+            placeholders (NeAS wide bounds for K = 1) until ``set_bounds``.
+        ray_sampler: ``kneas.samplers`` name of the ray sampler.
+        num_samples / num_eval_samples: points per ray in training (stratified,
+            jittered) / evaluation (even); paper 320 / 128.
+        floater: use the floater loss on air rays.
+        floater_fraction: fraction of epochs with the floater loss on (0.2).
+        lambda_floater, lambda_eikonal: ``λ_aux`` (0.1), ``λ_reg`` (0.01).
+        eikonal_mode: ``autograd`` (exact) or ``finite-difference``; None =
+            autograd, or finite-difference with the tinycudann hash grid.
+        eikonal_fraction: fraction of the training sample points the eikonal term
+            is evaluated on (1.0 = all, reusing the render's SDF outputs).
+        eikonal_fd_step: finite-difference step (model units); None = half the
+            finest hash-grid cell.
+    """
+
+    _target = "kneas_method.model:CTModel"
+    field: str = "sdf"
+    field_options: Options = dataclasses.field(default_factory=dict)
+    encoding: str = "hashgrid"
+    encoding_options: Optional[Options] = None
+    attenuation: str = "shared"
+    attenuation_options: Options = dataclasses.field(default_factory=dict)
+    selector: str = "soft"
+    selector_options: Options = dataclasses.field(default_factory=dict)
+    num_materials: int = 3
+    s_init: float = 20.0
+    alphas: Optional[tuple[float, ...]] = None
+    betas: Optional[tuple[float, ...]] = None
+    ray_sampler: str = "stratified"
+    num_samples: Optional[int] = None
+    num_eval_samples: Optional[int] = None
+    intensity_loss: str = "intensity"
+    floater: bool = False
+    floater_loss: str = "floater"
+    floater_fraction: float = 0.2
+    lambda_floater: float = 0.1
+    eikonal_loss: str = "eikonal"
+    eikonal_mode: Optional[str] = None
+    eikonal_fraction: Optional[float] = None
+    eikonal_fd_step: Optional[float] = None
+    lambda_eikonal: float = 0.01
+
+
+def _finest_cell(encoding_cfg, bound: float) -> float:
+    """Half the finest grid cell in model units (1e-3 when the encoding has no grid)."""
+    try:
+        res = encoding_cfg.base_resolution * encoding_cfg.per_level_scale ** (encoding_cfg.num_levels - 1)
+        return bound * 2.0 / math.ceil(res) / 2.0
+    except AttributeError:
+        return 1e-3
+
+
+class CTModel(nn.Module):
+    """Field + selector + Beer–Lambert renderer.
+
+    Args:
+        config: :class:`ModelConfig`.
+        scale: model units per metre (``geometry.scale``); 1.0 for dry runs.
+        device: the device the model will run on (lets ``hashgrid`` pick tinycudann
+            on CUDA); the caller still moves the model with ``.to(device)``.
+    """
+
+    def __init__(self, config: ModelConfig, scale: float = 1.0, device=None):
+        super().__init__()
+        self.config = config
+        self.scale = float(scale)
+        enc_cfg = build_component("fields", config.encoding, config.encoding_options)
+        encoding = enc_cfg.setup(device=device) if device is not None else enc_cfg.setup()
+        field_cfg = build_component("fields", config.field, config.field_options)
+        K = int(config.num_materials)
+        self.field = field_cfg.setup(encoding=encoding, num_materials=K)
+        self.has_sdf = bool(getattr(self.field, "has_sdf", False))
+        self.bound = float(getattr(field_cfg, "bound", 1.0))
+        if self.has_sdf:
+            if K < 1:
+                raise ConfigError(f"num_materials is {K}; an SDF model needs K >= 1 (--num-materials)")
+            att_cfg = build_component("fields", config.attenuation, config.attenuation_options, aliases=(f"attenuation-{config.attenuation}",))
+            self.attenuation = att_cfg.setup(feature_dim=self.field.feature_dim, num_materials=K)
+            self.selector = build_component("selectors", config.selector, config.selector_options).setup(num_materials=K)
+            from .fields.sdf_field import SurfaceBoundary
+
+            self.boundary = SurfaceBoundary(config.s_init)
+            self.num_materials = K
+            if config.alphas is not None or config.betas is not None:
+                if config.alphas is None or config.betas is None:
+                    raise ConfigError("give both model.alphas and model.betas (data units, one per material), or neither")
+                self.set_bounds(config.alphas, config.betas)
+        else:
+            self.attenuation = self.selector = self.boundary = None
+            self.num_materials = 0
+        self.ray_sampler = build_component("samplers", config.ray_sampler).setup()
+        self.intensity_loss = build_component("losses", config.intensity_loss).setup()
+        fl_cfg = build_component("losses", config.floater_loss)
+        if hasattr(fl_cfg, "fraction"):
+            fl_cfg = dataclasses.replace(fl_cfg, fraction=config.floater_fraction)
+        self.floater_loss = fl_cfg.setup()
+        self.eikonal = None
+        if self.has_sdf and config.lambda_eikonal > 0:
+            ek_cfg = build_component("losses", config.eikonal_loss)
+            changes = {}
+            tcnn = getattr(encoding, "implementation", "") == "tcnn"
+            mode = config.eikonal_mode or ("finite-difference" if tcnn else "autograd")
+            if tcnn and mode == "autograd":
+                raise ConfigError("the tinycudann hash grid has no second derivative, so the autograd eikonal cannot train it; "
+                                  "use model.eikonal_mode finite-difference or the torch hash grid (encoding_options implementation torch)")
+            if hasattr(ek_cfg, "mode"):
+                changes["mode"] = mode
+            if hasattr(ek_cfg, "fd_step"):
+                changes["fd_step"] = config.eikonal_fd_step
+            self.eikonal = dataclasses.replace(ek_cfg, **changes).setup(default_step=_finest_cell(enc_cfg, self.bound))
+
+    # ------------------------------------------------------------------ setup
+    def set_bounds(self, alphas: Sequence[float], betas: Sequence[float]) -> None:
+        """Attenuation bounds per material (data units, length K); saved in the state_dict."""
+        if not self.has_sdf:
+            raise ConfigError("this model has no materials (no SDF), so it takes no attenuation bounds")
+        self.attenuation.set_bounds(alphas, betas)
+
+    @property
+    def bounds(self) -> tuple[list[float], list[float]]:
+        """Current ``(alphas, betas)`` in data units."""
+        return self.attenuation.alphas.tolist(), self.attenuation.betas.tolist()
+
+    def num_parameters(self) -> int:
+        """Trainable parameter count."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+    # ------------------------------------------------------------------ query
+    def query(self, points: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Evaluate the field at points [P, 3] (model units).
+
+        Returns ``mu`` [P] (data units); with an SDF also ``weights`` [P, K],
+        ``distances`` [P, K] (model units) and ``mu_materials`` [P, K] (raw
+        per-material attenuation, data units).
+        """
+        if not self.has_sdf:
+            return {"mu": self.field(points)}
+        distances, features = self.field(points)
+        mu_bar = self.attenuation(features)
+        mu, weights = self.selector(distances, mu_bar, self.boundary)
+        return {"mu": mu, "weights": weights, "distances": distances, "mu_materials": mu_bar}
+
+    # ----------------------------------------------------------------- render
+    def _render(self, origins, directions, near, far, n_samples, stratified, generator=None, points_grad=False):
+        R = origins.shape[0]
+        t = self.ray_sampler.sample(near, far, R, n_samples, stratified, device=origins.device, dtype=origins.dtype, generator=generator)
+        flat = sample_points(origins, directions, t).reshape(-1, 3)
+        if points_grad:
+            flat = flat.detach().requires_grad_(True)
+        q = self.query(flat)
+        mu = q["mu"].reshape(R, n_samples)
+        intensity, line = beer_lambert(mu, segment_lengths(t, directions, self.scale))
+        return intensity, line, mu, t, flat, q
+
+    def render(
+        self,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        near,
+        far,
+        n_samples: Optional[int] = None,
+        stratified: Optional[bool] = None,
+        details: bool = False,
+        generator: Optional[torch.Generator] = None,
+    ) -> RenderOutput:
+        """Render rays ``origins`` [R, 3], ``directions`` [R, 3] (unnormalised, model units).
+
+        Args:
+            near, far: ray-parameter range, scalars or [R] (model units).
+            n_samples: points per ray; default ``num_samples`` in training mode,
+                ``num_eval_samples`` in eval mode.
+            stratified: jittered bins (default: ``self.training``) or even spacing.
+            details: also return ``mu`` [R, S], ``weights`` [R, S, K],
+                ``distances`` [R, S, K] and ``t`` [R, S].
+        """
+        stratified = self.training if stratified is None else stratified
+        if n_samples is None:
+            n_samples = self.config.num_samples if self.training else self.config.num_eval_samples
+        if n_samples is None:
+            raise ConfigError("model.num_samples / num_eval_samples are unset; resolve the config with presets.resolve first")
+        intensity, line, mu, t, _, q = self._render(origins, directions, near, far, int(n_samples), stratified, generator)
+        if not details:
+            return RenderOutput(intensity, line)
+        R, S = mu.shape
+        w = q.get("weights")
+        d = q.get("distances")
+        return RenderOutput(
+            intensity, line, mu=mu, t=t,
+            weights=None if w is None else w.reshape(R, S, -1),
+            distances=None if d is None else d.reshape(R, S, -1),
+        )
+
+    @torch.no_grad()
+    def render_chunked(self, origins, directions, near, far, chunk: int = 4096, n_samples: Optional[int] = None) -> RenderOutput:
+        """Evaluation render (even spacing, no grad) in chunks of ``chunk`` rays: intensity [R], line_integral [R]."""
+        parts = [self.render(origins[i : i + chunk], directions[i : i + chunk], near, far, n_samples, stratified=False) for i in range(0, len(origins), chunk)]
+        return RenderOutput(torch.cat([p.intensity for p in parts]), torch.cat([p.line_integral for p in parts]))
+
+    # ------------------------------------------------------------------ losses
+    def loss_dict(self, batch: dict[str, Any], progress: float, generator: Optional[torch.Generator] = None) -> dict[str, torch.Tensor]:
+        """Weighted loss terms and ``total`` for one training batch.
+
+        Args:
+            batch: from the datamanager: ``origins`` [R, 3], ``directions`` [R, 3],
+                ``projections`` [R] (measured line integrals), ``is_air`` [R] bool,
+                ``near``, ``far`` (model units).
+            progress: fraction of training done, in [0, 1] (epochs done / epochs);
+                schedules the floater loss.
+
+        Returns:
+            ``intensity``, ``floater`` (while active), ``eikonal`` (SDF models),
+            ``total``: scalar tensors, already multiplied by their λ.
+        """
+        cfg = self.config
+        is_air = batch["is_air"]
+        use_air = bool(cfg.floater and self.floater_loss.active(progress) and bool(is_air.any()))
+        keep = slice(None) if use_air else ~is_air
+        origins, directions, p, air = batch["origins"][keep], batch["directions"][keep], batch["projections"][keep], is_air[keep]
+        n_samples = cfg.num_samples
+        if n_samples is None:
+            raise ConfigError("model.num_samples is unset; resolve the config with presets.resolve first")
+        frac = 1.0 if cfg.eikonal_fraction is None else float(cfg.eikonal_fraction)
+        eik_same = self.eikonal is not None and frac >= 1.0 and self.eikonal.config.mode == "autograd"
+        intensity, _, _, _, flat, q = self._render(origins, directions, batch["near"], batch["far"], int(n_samples), True, generator, points_grad=eik_same)
+        out: dict[str, torch.Tensor] = {}
+        out["intensity"] = self.intensity_loss(intensity[~air], p[~air])
+        if use_air:
+            out["floater"] = cfg.lambda_floater * self.floater_loss(intensity[air])
+        if self.eikonal is not None:
+            inside = (flat.detach().abs() <= self.bound).all(-1)
+            if eik_same:
+                eik = self.eikonal(self.field.distances, flat, q["distances"], mask=inside)
+            else:
+                n = max(1, int(round(frac * len(flat))))
+                idx = torch.randperm(len(flat), device="cpu", generator=generator)[:n].to(flat.device) if n < len(flat) else slice(None)
+                eik = self.eikonal(self.field.distances, flat[idx].detach(), None, mask=inside[idx])
+            out["eikonal"] = cfg.lambda_eikonal * eik
+        out["total"] = sum(out.values())
+        return out

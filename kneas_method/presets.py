@@ -1,0 +1,119 @@
+"""Presets: fill the settings a run leaves at ``None`` (SPEC §3).
+
+- ``paper``: the paper's schedule and architecture exactly (1000 epochs, 512 +
+  128 rays, 320 / 128 samples, the full 14-level 2^19 hash grid, exact eikonal
+  on every sample).
+- ``cpu``: a much smaller schedule for 2 CPU cores, meant to finish a k-neas
+  foot run, prior model included, in about 10–15 minutes. PROVISIONAL numbers:
+  the training work tunes them by measurement.
+- ``tiny``: seconds; for tests and smoke runs.
+- ``auto``: ``paper`` when CUDA is available, else ``cpu``; :func:`choose`
+  says which and why, and the run prints it.
+
+Anything the user set (not ``None``) wins over the preset; ``encoding_options``
+are merged key by key (user keys win).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+
+from .errors import ConfigError
+from .methods import PRESETS, TrainConfig
+
+PAPER_HASHGRID = {"num_levels": 14, "features_per_level": 2, "log2_hashmap_size": 19, "base_resolution": 16, "per_level_scale": 2.0}
+
+TABLE: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": {
+        "hashgrid": PAPER_HASHGRID,
+        "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0},
+        "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
+        "trainer": {"epochs": 1000, "prior_epochs": 1000, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None},
+    },
+    # PROVISIONAL (to be tuned by measurement): a 8-level, 2^16 grid with finest
+    # resolution ~270 (the foot volume is 256^3), 256 + 64 rays x 64 samples,
+    # the eikonal on a quarter of the samples.
+    "cpu": {
+        "hashgrid": {"num_levels": 8, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.5},
+        "model": {"num_samples": 64, "num_eval_samples": 96, "eikonal_fraction": 0.25},
+        "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
+        "trainer": {"epochs": 20, "prior_epochs": 10, "eval_every": 10, "checkpoint_every": 10, "eval_chunk": 4096, "eval_views": 5},
+    },
+    "tiny": {
+        "hashgrid": {"num_levels": 3, "features_per_level": 2, "log2_hashmap_size": 10, "base_resolution": 4, "per_level_scale": 2.0},
+        "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0},
+        "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
+        "trainer": {"epochs": 2, "prior_epochs": 1, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2},
+    },
+}
+
+
+def choose(preset: str) -> tuple[str, str]:
+    """``(concrete preset, reason)`` for a requested preset name."""
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if preset != "auto":
+        return preset, f"preset '{preset}' as requested"
+    if torch.cuda.is_available():
+        return "paper", f"preset 'paper' chosen automatically: CUDA GPU found ({torch.cuda.get_device_name(0)})"
+    return "cpu", "preset 'cpu' chosen automatically: no CUDA GPU, and the paper schedule would take days on CPU (use --preset paper to force it)"
+
+
+def resolve_device(device: str) -> torch.device:
+    """``auto`` -> cuda if available else cpu; anything else as given."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ConfigError(f"device {device!r} is not a valid torch device ({exc}); use auto, cpu or cuda") from exc
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device {device!r} asked for but no CUDA GPU is available; use --device cpu or auto")
+    return dev
+
+
+def _fill(obj, values: dict[str, Any]):
+    changes = {k: v for k, v in values.items() if getattr(obj, k) is None}
+    return dataclasses.replace(obj, **changes) if changes else obj
+
+
+def resolve(config: TrainConfig) -> TrainConfig:
+    """Return a copy of ``config`` with the preset applied and ``config.preset`` made concrete.
+
+    Also applies ``num_materials`` to the model and checks it against the method.
+    The reason for the preset choice is :func:`choose` ``(config.preset)[1]``,
+    computed before resolving.
+    """
+    name, _ = choose(config.preset)
+    table = TABLE[name]
+    model = _fill(config.model, table["model"])
+    if model.encoding == "hashgrid":
+        merged = dict(table["hashgrid"])
+        merged.update(model.encoding_options or {})
+        model = dataclasses.replace(model, encoding_options=merged)
+    elif model.encoding_options is None:
+        model = dataclasses.replace(model, encoding_options={})
+    K = config.num_materials
+    if K is not None:
+        if model.field == "naf":
+            raise ConfigError(f"method {config.method!r} has no materials; drop --num-materials")
+        if K < 1:
+            raise ConfigError(f"--num-materials must be >= 1, got {K}")
+        if model.attenuation == "single" and K != 1:
+            raise ConfigError(f"method {config.method!r} is single-material; drop --num-materials or use a K-material method such as k-neas")
+        if model.selector == "hard" and K != 2:
+            raise ConfigError(f"method {config.method!r} uses the hard selector, which works only with 2 materials; use --num-materials 2 or a soft-selector method such as k-neas")
+        model = dataclasses.replace(model, num_materials=K)
+    elif model.field != "naf":
+        K = model.num_materials
+    return dataclasses.replace(
+        config,
+        preset=name,
+        num_materials=K,
+        model=model,
+        datamanager=_fill(config.datamanager, table["datamanager"]),
+        trainer=_fill(config.trainer, {k: v for k, v in table["trainer"].items()}),
+    )
