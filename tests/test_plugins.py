@@ -1,0 +1,127 @@
+"""A third-party package adds a selector and a whole method through entry points, with no change to kneas."""
+
+import dataclasses
+import importlib
+import re
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from kneas_method import presets, registry
+from kneas_method.data.scene import Scene, Views
+from kneas_method.geometry import Geometry
+
+PLUGIN = textwrap.dedent(
+    '''
+    """Demo kneas plugin: a normalised-occupancy selector and a method using it."""
+    from dataclasses import dataclass
+
+    from kneas_method.methods import TrainConfig
+    from kneas_method.model import ModelConfig
+    from kneas_method.registry import MethodSpecification
+    from kneas_method.selectors.base import Selector, SelectorConfig
+
+
+    @dataclass
+    class ShareSelectorConfig(SelectorConfig):
+        _target = "kneas_demo_plugin:ShareSelector"
+        power: float = 1.0
+
+
+    class ShareSelector(Selector):
+        """w_k = o_k^p / (1 + sum_j o_j^p): materials share the point."""
+
+        def weights(self, occupancies, distances):
+            o = occupancies ** self.config.power
+            return o / (1.0 + o.sum(-1, keepdim=True))
+
+
+    method = MethodSpecification(
+        config=TrainConfig(
+            method="demo-share",
+            model=ModelConfig(selector="demo-share", selector_options={"power": 2.0}, attenuation="shared", num_materials=2),
+        ),
+        description="demo plugin method: shared attenuation with the share selector",
+    )
+    '''
+)
+
+ENTRY_POINTS = """\
+[kneas.selectors]
+demo-share = kneas_demo_plugin:ShareSelectorConfig
+
+[kneas.methods]
+demo-share = kneas_demo_plugin:method
+"""
+
+
+@pytest.fixture
+def plugin(tmp_path, monkeypatch):
+    (tmp_path / "kneas_demo_plugin.py").write_text(PLUGIN)
+    info = tmp_path / "kneas_demo_plugin-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: kneas-demo-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(ENTRY_POINTS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    importlib.invalidate_caches()
+    yield
+    sys.modules.pop("kneas_demo_plugin", None)
+
+
+def ball_scene(n_views=4, n_det=12):
+    g = Geometry.from_mm(mode="cone", DSD=1500.0, DSO=1000.0, nDetector=(n_det, n_det), dDetector=(192.0 / n_det,) * 2,
+                         nVoxel=(16, 16, 16), dVoxel=(8.0, 8.0, 8.0))
+    angles = np.linspace(0, np.pi, n_views, endpoint=False)
+    o, d = g.rays(angles, dtype=torch.float64)
+    r = 30.0 / g.mm_per_unit
+    dn = d / d.norm(dim=-1, keepdim=True)
+    closest = (o - (o * dn).sum(-1, keepdim=True) * dn).norm(dim=-1)
+    p = (2.0 * 2 * torch.sqrt(torch.clamp(r**2 - closest**2, min=0)) / g.scale).float().numpy()
+    return Scene(name="ball", geometry=g, train=Views(angles, p), val=Views(angles[:1], p[:1]))
+
+
+def test_plugin_is_discovered(plugin, capsys):
+    assert "demo-share" in registry.names("selectors")
+    assert "demo-share" in registry.names("methods")
+    assert "demo-share" not in registry.names("fields")
+    from kneas_method.cli import train as cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--help"])
+    assert exc.value.code == 0 and "demo-share" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["demo-share", "--dry-run", "--preset", "tiny"])
+    out = capsys.readouterr().out
+    assert exc.value.code == 0 and re.search(r"^parameters: [\d,]+$", out, re.M) and "selector=demo-share" in out
+    # a built-in method with the plugin's selector, by name on the command line
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["k-neas", "--dry-run", "--preset", "tiny", "--model.selector", "demo-share", "--model.selector-options", "power", "3"])
+    assert exc.value.code == 0
+
+
+def test_plugin_method_trains(plugin):
+    spec = registry.load("methods", "demo-share")
+    cfg = presets.resolve(dataclasses.replace(spec.config, preset="tiny"))
+    scene = ball_scene()
+    torch.manual_seed(0)
+    dm = cfg.datamanager.setup(scene=scene, seed=0)
+    model = cfg.model.setup(scale=scene.geometry.scale)
+    assert type(model.selector).__name__ == "ShareSelector" and model.selector.config.power == 2.0
+    model.set_bounds([1.0, 2.0], [0.0, 1.0])
+    before = [p.detach().clone() for p in model.parameters()]
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    losses = []
+    steps = 4 * dm.steps_per_epoch
+    for step in range(steps):
+        batch = dm.next_train()
+        loss = model.loss_dict(batch, progress=step / steps)
+        opt.zero_grad()
+        loss["total"].backward()
+        opt.step()
+        losses.append(loss["intensity"].item())
+    assert all(np.isfinite(losses))
+    assert np.mean(losses[-4:]) < np.mean(losses[:4])
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(before, model.parameters()))
