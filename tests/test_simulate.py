@@ -222,3 +222,48 @@ def test_simulate_from_volume_uses_projector_and_records_meta():
         simulate_from_volume(-vol, TINY)
     with pytest.raises(SceneError, match="3-D"):
         simulate_from_volume(vol[0], TINY)
+
+
+# ----------------------------------------------------------------------------- scene resolution
+def test_resolve_scene_file_public_and_errors(tmp_path):
+    from kneas_method.data.scenes import resolve_scene
+
+    scene = simulate_phantom(SphereStandIn(), TINY)
+    path = save_naf(scene, tmp_path / "mine.pickle")
+    s = resolve_scene(str(path))
+    assert s.source == f"file {path}" and s.name == "mine"
+    data = tmp_path / "data"
+    save_naf(scene, data / "foot_50.pickle")
+    s = resolve_scene("foot", data_dir=data, cache_dir=tmp_path / "cache")
+    assert s.name == "foot" and s.source == f"public benchmark {data / 'foot_50.pickle'}"
+    assert not (tmp_path / "cache").exists()
+    with pytest.raises(SceneError, match="neither an existing file nor a built-in scene; use one of foot, jaw, chest, abdomen"):
+        resolve_scene("knee", data_dir=data)
+    with pytest.raises(SceneError, match="neither an existing file"):
+        resolve_scene(str(tmp_path / "nope.pickle"), data_dir=data)
+
+
+def test_builtin_scene_cached_and_regenerated_on_config_change(tmp_path, monkeypatch):
+    from kneas_method.data import scenes
+
+    tiny = SimulationConfig(n_voxel=8, voxel_mm=30.0, n_detector=8, n_train=2, n_val=1)
+    monkeypatch.setattr(scenes, "SimulationConfig", lambda: tiny)  # the "default" config, made tiny
+    monkeypatch.setenv("KNEAS_CACHE", str(tmp_path / "envcache"))
+    first = scenes.resolve_scene("jaw", data_dir=tmp_path / "nodata")
+    path = tmp_path / "envcache" / "jaw_2.pickle"
+    assert path.is_file() and first.source == f"built-in phantom jaw (cached at {path})"
+    assert first.materials and first.membership is not None and first.labels is not None
+    stamp = path.stat().st_mtime_ns
+    second = scenes.resolve_scene("jaw", data_dir=tmp_path / "nodata")
+    assert path.stat().st_mtime_ns == stamp  # served from the cache
+    np.testing.assert_array_equal(second.train.projections, first.train.projections)
+    # a changed default config regenerates the cached file
+    changed = SimulationConfig(n_voxel=8, voxel_mm=30.0, n_detector=10, n_train=2, n_val=1)
+    monkeypatch.setattr(scenes, "SimulationConfig", lambda: changed)
+    third = scenes.resolve_scene("jaw", data_dir=tmp_path / "nodata")
+    assert third.train.projections.shape == (2, 10, 10)
+    # a damaged cache file is replaced, not fatal
+    path.write_bytes(b"garbage")
+    fourth = scenes.resolve_scene("jaw", data_dir=tmp_path / "nodata")
+    assert fourth.train.projections.shape == (2, 10, 10)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["jaw_2.pickle"]
