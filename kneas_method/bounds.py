@@ -38,7 +38,6 @@ import math
 import warnings as _warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
