@@ -155,3 +155,10 @@ def test_errors():
         fdk_reconstruct(g, a, np.zeros((4, 16, 15), np.float32))
     with pytest.raises(KneasError, match="angles and projections"):
         fdk_reconstruct(g)
+
+
+def test_detector_and_volume_offsets():
+    g = Geometry.from_mm(mode="cone", DSD=1500.0, DSO=1000.0, nDetector=(56, 48), dDetector=(5.0, 5.0),
+                         nVoxel=(32, 28, 24), dVoxel=(4.0, 4.0, 4.0), offDetector=(12.0, -9.0), offOrigin=(6.0, -4.0, 3.0))
+    angles = np.linspace(0, 2 * math.pi, 60, endpoint=False)
+    check_ball(g, fdk_reconstruct(g, angles, ball_projections(g, angles)), tol=0.03)
