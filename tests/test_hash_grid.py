@@ -140,6 +140,18 @@ def test_dense_and_hashed_paths_agree():
     torch.testing.assert_close(hashed(xv)[0], vals[row], rtol=0, atol=1e-12)
 
 
+def test_each_level_reads_only_its_own_rows():
+    """Level l's rows all hold the constant c_l -> output block l is c_l everywhere (offsets)."""
+    enc = HashGridConfig(num_levels=4, log2_hashmap_size=8, base_resolution=2, implementation="torch").setup()
+    assert enc.layout.hashed == (False, False, True, True)
+    consts = torch.tensor([[1.0, -1.0], [2.0, -2.0], [3.0, -3.0], [4.0, -4.0]])
+    with torch.no_grad():
+        for l in range(4):
+            enc.level_table(l)[:] = consts[l]
+    y = enc(torch.rand(300, 3) * 2 - 1).view(300, 4, 2)
+    torch.testing.assert_close(y, consts.expand(300, 4, 2), rtol=0, atol=1e-6)
+
+
 def test_output_shape_dtype_and_clamping():
     enc = HashGridConfig().setup()
     x = torch.rand(64, 3) * 2 - 1
@@ -147,6 +159,7 @@ def test_output_shape_dtype_and_clamping():
     assert y.shape == (64, 28) and y.dtype == torch.float32
     assert enc(x.double()).dtype == torch.float32
     assert enc(torch.zeros(0, 3)).shape == (0, 28)
+    torch.testing.assert_close(enc(x.view(4, 16, 3)), y.view(4, 16, 28), rtol=0, atol=0)
     outside = torch.tensor([[1.5, -3.0, 0.2], [-1.01, 2.0, -7.0]])
     inside = torch.tensor([[1.0, -1.0, 0.2], [-1.0, 1.0, -1.0]])
     torch.testing.assert_close(enc(outside), enc(inside), rtol=0, atol=0)

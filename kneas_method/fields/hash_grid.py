@@ -23,10 +23,13 @@ interpolation of the 8 surrounding vertices' features. Output features are
 level-major: ``out[:, l*F + f]`` (the same order tiny-cuda-nn uses).
 
 The torch implementation is vectorised over levels (a handful of batched
-tensor ops, one gather, one weighted sum; no Python loop over levels) and uses
+tensor ops, one gather, three lerps; no Python loop over levels) and uses
 only differentiable torch ops, so it is twice differentiable: the eikonal loss
 can take ``grad(out, x, create_graph=True)`` and back-propagate through it to
-both the table and ``x``.
+both the table and ``x``. Measured on one CPU thread, 16,384 points, paper
+config: forward ~0.1 s, forward+backward ~0.25 s, forward + ``grad(create_graph)``
++ backward ~0.3 s (a per-level Python loop: ~0.77 s / ~0.89 s, mostly from
+zero-filling the 48 MB table gradient once per level).
 
 tiny-cuda-nn
 ------------
@@ -229,7 +232,7 @@ class HashGridEncoding(nn.Module):
         implementation: ``"torch"``.
 
     Call: ``x [P, 3]`` in model units ``[-1, 1]^3`` (clamped) -> ``[P, L*F]`` in the
-    table's dtype (float32 by default).
+    table's dtype (float32 by default); ``[..., 3] -> [..., L*F]`` also works.
     """
 
     implementation = "torch"
@@ -254,8 +257,9 @@ class HashGridEncoding(nn.Module):
         # Dense levels: per-axis strides (1, R+1, (R+1)^2)   [nd, 3]
         r1 = res[:nd] + 1
         self.register_buffer("_dense_strides", torch.stack([torch.ones_like(r1), r1, r1 * r1], -1), persistent=False)
-        # Hashed levels: table sizes [nh]
-        self.register_buffer("_hash_sizes", torch.tensor(lay.sizes[nd:], dtype=torch.int64), persistent=False)
+        # Hashed levels: index masks T - 1 [nh] (T = 2**log2_hashmap_size, a power of two)
+        assert all(size & (size - 1) == 0 for size in lay.sizes[nd:])
+        self.register_buffer("_hash_masks", torch.tensor(lay.sizes[nd:], dtype=torch.int64) - 1, persistent=False)
         self.register_buffer("_primes", torch.tensor(HASH_PRIMES, dtype=torch.int64), persistent=False)
 
     # -- layout helpers -------------------------------------------------------
@@ -270,18 +274,16 @@ class HashGridEncoding(nn.Module):
                 f"resolutions={lay.resolutions[0]}..{lay.resolutions[-1]}, params={lay.n_params}")
 
     # -- forward ----------------------------------------------------------------
-    def corner_indices_and_weights(
-        self, x: torch.Tensor, dtype: torch.dtype | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Table rows and trilinear weights of the 8 corners on every level.
+    def corners(self, x: torch.Tensor, dtype: torch.dtype | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Table rows of the 8 cell corners and the position inside the cell, on every level.
 
         Args:
             x: ``[P, 3]`` points in model units (clamped to ``[-1, 1]^3``).
-            dtype: float dtype of the weights (default: the table's).
+            dtype: float dtype of ``frac`` (default: the table's).
 
         Returns:
-            ``index [P, L, 8]`` (int64 rows of ``table``) and ``weights [P, L, 8]``
-            (table dtype, differentiable w.r.t. ``x``). Corner ``c = 4*dx + 2*dy + dz``.
+            ``index [P, L, 8]`` (int64 rows of ``table``; corner ``c = 4*dx + 2*dy + dz``) and
+            ``frac [P, L, 3]`` in ``[0, 1]`` (differentiable w.r.t. ``x``).
         """
         _check_points(x)
         dtype = self.table.dtype if dtype is None else dtype
@@ -289,7 +291,7 @@ class HashGridEncoding(nn.Module):
         res = self._resolutions.to(dtype)  # [L]
         pos = p[:, None, :] * res[None, :, None]  # [P, L, 3] grid coordinates
         cell = torch.minimum(torch.floor(pos.detach()), (res - 1.0)[None, :, None])  # [P, L, 3]
-        frac = pos - cell  # [P, L, 3] in [0, 1]
+        frac = pos - cell  # [P, L, 3]
         lo = cell.to(torch.int64)
         corner = torch.stack([lo, lo + 1], -1)  # [P, L, 3, 2] integer vertex coords per axis
 
@@ -297,35 +299,58 @@ class HashGridEncoding(nn.Module):
         nd = self._n_dense
         if nd > 0:
             t = corner[:, :nd] * self._dense_strides[None, :, :, None]  # [P, nd, 3, 2]
-            idx = t[:, :, 0, :, None, None] + t[:, :, 1, None, :, None] + t[:, :, 2, None, None, :]
+            tz = t[:, :, 2] + self._offsets[None, :nd, None]  # level offset folded into the z term
+            idx = t[:, :, 0, :, None, None] + t[:, :, 1, None, :, None] + tz[:, :, None, None, :]
             parts.append(idx.flatten(2))  # [P, nd, 8]
         if nd < self.n_levels:
-            t = (corner[:, nd:] * self._primes[None, None, :, None]) & _UINT32_MASK  # [P, nh, 3, 2]
+            # Hashed level sizes are powers of two dividing 2^32, so masking every axis term to
+            # the low log2(T) bits equals the reference "& 0xFFFFFFFF, XOR, mod T" (and is cheaper).
+            t = (corner[:, nd:] * self._primes[None, None, :, None]) & self._hash_masks[None, :, None, None]
             idx = t[:, :, 0, :, None, None] ^ t[:, :, 1, None, :, None] ^ t[:, :, 2, None, None, :]
-            parts.append(idx.flatten(2) % self._hash_sizes[None, :, None])  # [P, nh, 8]
-        index = (parts[0] if len(parts) == 1 else torch.cat(parts, 1)) + self._offsets[None, :, None]
+            parts.append(idx.flatten(2) + self._offsets[None, nd:, None])  # [P, nh, 8]
+        index = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+        return index, frac
 
+    def corner_indices_and_weights(
+        self, x: torch.Tensor, dtype: torch.dtype | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``index [P, L, 8]`` (see :meth:`corners`) and trilinear ``weights [P, L, 8]`` (sum to 1)."""
+        index, frac = self.corners(x, dtype)
         w = torch.stack([1.0 - frac, frac], -1)  # [P, L, 3, 2]
         weights = (w[:, :, 0, :, None, None] * w[:, :, 1, None, :, None] * w[:, :, 2, None, None, :]).flatten(2)
         return index, weights
 
     def encode(self, x: torch.Tensor, table: torch.Tensor | None = None) -> torch.Tensor:
-        """Encode ``x [P, 3]`` with ``table [n_entries, F]`` (default ``self.table``) -> ``[P, L*F]``."""
+        """Encode ``x [P, 3]`` with ``table [n_entries, F]`` (default ``self.table``) -> ``[P, L*F]``.
+
+        Trilinear interpolation as three successive lerps (x, then y, then z): mathematically
+        the weighted sum of the 8 corners, but measurably cheaper to differentiate twice on CPU
+        than forming the 8 weights.
+        """
         table = self.table if table is None else table
-        index, weights = self.corner_indices_and_weights(x, table.dtype)
-        P = x.shape[0]
-        feats = table.index_select(0, index.reshape(-1)).view(P, self.n_levels, 8, self.n_features)
-        out = torch.matmul(weights.unsqueeze(-2), feats)  # [P, L, 1, F]
-        return out.reshape(P, self.n_output_dims)
+        _check_points(x)
+        lead = x.shape[:-1]
+        x = x.reshape(-1, 3)
+        index, frac = self.corners(x, table.dtype)
+        P, L, F = x.shape[0], self.n_levels, self.n_features
+        f = table.index_select(0, index.reshape(-1)).view(P, L, 2, 4 * F)  # [P, L, dx, (dy, dz, F)]
+        fx, fy, fz = frac[:, :, 0, None], frac[:, :, 1, None], frac[:, :, 2, None]  # [P, L, 1]
+        a = (f[:, :, 0] + fx * (f[:, :, 1] - f[:, :, 0])).view(P, L, 2, 2 * F)  # [P, L, dy, (dz, F)]
+        b = (a[:, :, 0] + fy * (a[:, :, 1] - a[:, :, 0])).view(P, L, 2, F)  # [P, L, dz, F]
+        out = b[:, :, 0] + fz * (b[:, :, 1] - b[:, :, 0])  # [P, L, F]
+        return out.reshape(*lead, L * F)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``x [P, 3]`` in ``[-1, 1]^3`` (model units) -> features ``[P, L*F]``."""
+        """``x [P, 3]`` in ``[-1, 1]^3`` (model units) -> features ``[P, L*F]``.
+
+        Extra leading dimensions are allowed: ``[..., 3] -> [..., L*F]``.
+        """
         return self.encode(x)
 
 
 def _check_points(x: torch.Tensor) -> None:
-    if x.dim() != 2 or x.shape[-1] != 3:
-        raise KneasError(f"hash grid expects points of shape [P, 3], got {tuple(x.shape)}; reshape the input to [-1, 3]")
+    if x.dim() < 1 or x.shape[-1] != 3:
+        raise KneasError(f"hash grid expects points of shape [P, 3], got {tuple(x.shape)}; pass 3-D points")
 
 
 class TcnnHashGridEncoding(nn.Module):
@@ -382,8 +407,9 @@ class TcnnHashGridEncoding(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x [P, 3]`` in ``[-1, 1]^3`` (model units) -> ``[P, L*F]`` float32."""
         _check_points(x)
-        p = ((x.float() + 1.0) * 0.5).clamp(0.0, 1.0).contiguous()
-        return self.encoding(p).float()
+        lead = x.shape[:-1]
+        p = ((x.reshape(-1, 3).float() + 1.0) * 0.5).clamp(0.0, 1.0).contiguous()
+        return self.encoding(p).float().reshape(*lead, self.n_output_dims)
 
     def load_table(self, table: torch.Tensor) -> None:
         """Copy a torch-layout ``table [n_entries, F]`` into tiny-cuda-nn's params."""
