@@ -1,0 +1,219 @@
+"""Experiment grids: the cells of the paper's tables, each one ordinary ``kneas-train`` run.
+
+A :class:`Cell` is (scene, method, K, views, seed, preset [, extra train args]).
+It runs as::
+
+    kneas-train METHOD --scene SCENE [--num-materials K] [--views V] --seed S \
+        --preset P --output-dir OUT/cells/<cell id> [extra args]
+
+so the run lands in ``OUT/cells/<cell id>/<scene>/<method>/<timestamp>/`` and
+the cell is complete once a ``metrics.json`` exists under its folder.
+
+Grids (``kneas-bench``):
+
+- ``table1``: scenes x {neas-1m (1M), neas-2m (2M), k-neas K = 1..4} x seeds (Table 1).
+- ``views``: scenes (chest) x views {5, 10, 20, 50} x {neas-2m, k-neas K = 2} x seeds (Table 2).
+- ``ablation``: scenes (foot) x {kselector, kselector-floater, kselector-shared, k-neas}, K = 2, x seeds (Table 3).
+- ``grid``: any scenes x methods x K x views x seeds.
+
+Every grid also has one ``fdk`` cell per scene (and per view count): FDK is
+deterministic, so it runs once (seed 0) as the classical reference row.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+from ..errors import ConfigError
+
+# Methods whose material count is fixed (no --num-materials passed) or absent.
+FIXED_K = {"neas-1m": 1, "neas-2m": 2}
+NO_MATERIALS = ("fdk", "naf")
+TABLE1_K = (1, 2, 3, 4)
+VIEWS = (5, 10, 20, 50)
+ABLATION_METHODS = ("kselector", "kselector-floater", "kselector-shared", "k-neas")
+DEFAULT_TRAIN_PREFIX = (sys.executable, "-c", "from kneas_method.cli.train import main; main()")
+
+
+def _slug(text: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(text)).strip("_.") or "x"
+    return s
+
+
+def scene_slug(scene: str) -> str:
+    """A folder-safe name for a scene: the built-in name, or a pickle's stem plus a short hash of its path."""
+    if "/" in scene or scene.endswith((".pickle", ".pkl")):
+        digest = hashlib.sha1(str(Path(scene).expanduser()).encode()).hexdigest()[:6]
+        return f"{_slug(Path(scene).stem)}-{digest}"
+    return _slug(scene)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One training run of a grid.
+
+    Attributes:
+        scene: built-in scene name or path to a NAF pickle.
+        method: registered kneas-train method (``fdk`` included).
+        k: number of materials (None for methods without materials: fdk, naf).
+        views: training views kept (None = all of the scene's, 50 for the benchmarks).
+        seed: training seed.
+        preset: kneas-train preset (``tiny``, ``cpu``, ``paper``, ``auto``).
+        extra: extra ``kneas-train`` arguments, passed through verbatim.
+    """
+
+    scene: str
+    method: str
+    k: Optional[int]
+    views: Optional[int]
+    seed: int
+    preset: str
+    extra: tuple[str, ...] = field(default=())
+
+    @property
+    def id(self) -> str:
+        """Deterministic folder name, e.g. ``foot__k-neas__K2__vall__s0__tiny``."""
+        parts = [scene_slug(self.scene), _slug(self.method), f"K{self.k}" if self.k is not None else "K-",
+                 f"v{self.views}" if self.views is not None else "vall", f"s{self.seed}", _slug(self.preset)]
+        if self.extra:
+            parts.append("x" + hashlib.sha1("\0".join(self.extra).encode()).hexdigest()[:8])
+        return "__".join(parts)
+
+    @property
+    def group(self) -> tuple:
+        """The cell without its seed: the key that seeds are averaged over."""
+        return (self.scene, self.method, self.k, self.views)
+
+    def train_args(self, output_dir: str | Path) -> list[str]:
+        """``kneas-train`` arguments (after the program) for this cell."""
+        args = [self.method, "--scene", self.scene]
+        if self.k is not None and self.method not in FIXED_K and self.method not in NO_MATERIALS:
+            args += ["--num-materials", str(self.k)]
+        if self.views is not None:
+            args += ["--views", str(self.views)]
+        args += ["--seed", str(self.seed), "--preset", self.preset, "--output-dir", str(output_dir)]
+        return args + list(self.extra)
+
+    def command(self, output_dir: str | Path, prefix: Sequence[str] = DEFAULT_TRAIN_PREFIX) -> list[str]:
+        """The full command line: ``prefix`` (how to start kneas-train) + :meth:`train_args`."""
+        return [*prefix, *self.train_args(output_dir)]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["extra"] = list(self.extra)
+        d["id"] = self.id
+        return d
+
+
+def seeds_from_count(n: int) -> tuple[int, ...]:
+    """``--seeds N`` means N seeds: 0 .. N-1."""
+    if n < 1:
+        raise ConfigError(f"--seeds must be at least 1 (it is the number of seeds, 0..N-1), got {n}")
+    return tuple(range(n))
+
+
+def _check_common(scenes: Sequence[str], preset: str) -> None:
+    from ..methods import PRESETS
+
+    if not scenes:
+        raise ConfigError("no scenes given; pass e.g. --scenes foot jaw")
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+
+
+def _fdk_cells(scenes: Iterable[str], views: Iterable[Optional[int]], preset: str, extra: tuple[str, ...]) -> list[Cell]:
+    return [Cell(s, "fdk", None, v, 0, preset, extra) for s in scenes for v in views]
+
+
+def _dedupe(cells: Iterable[Cell]) -> list[Cell]:
+    seen, out = set(), []
+    for c in cells:
+        if c.id not in seen:
+            seen.add(c.id)
+            out.append(c)
+    return out
+
+
+def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
+           ks: Sequence[int] = TABLE1_K, views: Optional[int] = None, fdk: bool = True, extra: Sequence[str] = ()) -> list[Cell]:
+    """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``)."""
+    _check_common(scenes, preset)
+    extra = tuple(extra)
+    cells = []
+    for s in scenes:
+        for k in ks:
+            if k < 1:
+                raise ConfigError(f"material counts must be >= 1, got {k}")
+            for seed in seeds:
+                if k in (1, 2):
+                    cells.append(Cell(s, f"neas-{k}m", k, views, seed, preset, extra))
+                cells.append(Cell(s, "k-neas", k, views, seed, preset, extra))
+    if fdk:
+        cells += _fdk_cells(scenes, [views], preset, extra)
+    return _dedupe(cells)
+
+
+def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
+                views: Sequence[int] = VIEWS, k: int = 2, fdk: bool = True, extra: Sequence[str] = ()) -> list[Cell]:
+    """Table 2: views x {neas-2m, k-neas with K = 2} per scene."""
+    _check_common(scenes, preset)
+    if any(v < 1 for v in views):
+        raise ConfigError(f"view counts must be >= 1, got {list(views)}")
+    extra = tuple(extra)
+    cells = [Cell(s, m, k, v, seed, preset, extra) for s in scenes for v in views for m in ("neas-2m", "k-neas") for seed in seeds]
+    if fdk:
+        cells += _fdk_cells(scenes, views, preset, extra)
+    return _dedupe(cells)
+
+
+def ablation(scenes: Sequence[str] = ("foot",), seeds: Sequence[int] = (0,), preset: str = "auto", k: int = 2,
+             methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, fdk: bool = True, extra: Sequence[str] = ()) -> list[Cell]:
+    """Table 3: the four-way ablation with K = 2."""
+    _check_common(scenes, preset)
+    extra = tuple(extra)
+    cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods for seed in seeds]
+    if fdk:
+        cells += _fdk_cells(scenes, [views], preset, extra)
+    return _dedupe(cells)
+
+
+def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[int]] = (None,), views: Sequence[Optional[int]] = (None,),
+         seeds: Sequence[int] = (0,), preset: str = "auto", extra: Sequence[str] = ()) -> list[Cell]:
+    """Any scenes x methods x K x views x seeds.
+
+    K is ignored for fdk/naf (and fixed to 1 / 2 for neas-1m / neas-2m); ``None``
+    in ``ks`` means the method's default K. Methods that need no seed (fdk) run once.
+    """
+    _check_common(scenes, preset)
+    if not methods:
+        raise ConfigError("no methods given; pass e.g. --methods k-neas neas-2m fdk")
+    extra = tuple(extra)
+    cells = []
+    for s in scenes:
+        for m in methods:
+            for v in views:
+                if m in NO_MATERIALS:
+                    mk: list[Optional[int]] = [None]
+                elif m in FIXED_K:
+                    mk = [FIXED_K[m]]
+                else:
+                    mk = list(ks)
+                for k in mk:
+                    for seed in (seeds[:1] if m == "fdk" else seeds):
+                        cells.append(Cell(s, m, k, v, seed, preset, extra))
+    return _dedupe(cells)
+
+
+def check_methods(methods: Iterable[str]) -> None:
+    """Every method must be a registered kneas-train method (or ``fdk``)."""
+    from .. import registry
+
+    known = set(registry.methods()) | {"fdk"}
+    unknown = [m for m in methods if m not in known]
+    if unknown:
+        raise ConfigError(f"unknown method(s) {', '.join(unknown)}; available: {', '.join(sorted(known))}")

@@ -1,0 +1,337 @@
+"""kneas-bench: grid expansion, aggregation (hand-written metrics.json fixtures), resume, backends, CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from kneas_method.bench import aggregate, backends, grid, paper_results
+from kneas_method.bench.cells import cell_dir, find_metrics, is_complete, run_cell
+from kneas_method.bench.grid import Cell
+from kneas_method.errors import KneasError
+
+# A stand-in for kneas-train: same arguments, same run-folder layout, metrics that depend on the cell.
+FAKE_TRAIN = r'''
+import json, os, sys, pathlib
+args = sys.argv[1:]
+method = args[0]
+def opt(name):
+    return args[args.index(name) + 1] if name in args else None
+scene, out, seed = opt("--scene"), pathlib.Path(opt("--output-dir")), int(opt("--seed"))
+k = int(opt("--num-materials")) if opt("--num-materials") else {"neas-1m": 1, "neas-2m": 2}.get(method)
+if os.environ.get("FAKE_LOG"):
+    with open(os.environ["FAKE_LOG"], "a") as f:
+        f.write(json.dumps({"args": args, "cuda": os.environ.get("CUDA_VISIBLE_DEVICES"), "omp": os.environ.get("OMP_NUM_THREADS")}) + "\n")
+fail = os.environ.get("FAKE_FAIL")
+if fail and fail == f"{scene}/{method}/{k}/{seed}":
+    print("Traceback (most recent call last):\nRuntimeError: boom in " + fail, file=sys.stderr)
+    sys.exit(3)
+run = out / scene / method / ("20240101-00000" + str(seed))
+run.mkdir(parents=True)
+base = {"neas-1m": 40.0, "neas-2m": 41.0, "k-neas": 42.0, "fdk": 30.0}.get(method, 35.0) + (k or 0) * 0.1 + seed
+(run / "config.json").write_text(json.dumps({"method": method, "scene": scene, "views": opt("--views"), "seed": seed, "num_materials": k}))
+(run / "metrics.json").write_text(json.dumps({"psnr2d": base, "ssim2d": 0.9, "psnr3d": base - 10, "ssim3d": 0.8, "psnr3d_ls": base - 9,
+    "parameters": 1, "steps": 2, "wall_time_s": 0.5, "preset": opt("--preset"), "scene_source": "built-in phantom " + scene}))
+'''
+
+
+@pytest.fixture()
+def fake_prefix(tmp_path):
+    script = tmp_path / "fake_train.py"
+    script.write_text(FAKE_TRAIN)
+    return (sys.executable, str(script))
+
+
+def _calls(log: Path) -> list[dict]:
+    return [json.loads(line) for line in log.read_text().splitlines()] if log.exists() else []
+
+
+# ---------------------------------------------------------------------------- grids
+
+
+def test_table1_grid_matches_the_paper_layout():
+    cells = grid.table1(["foot", "jaw"], grid.seeds_from_count(2), "tiny")
+    # per scene: NeAS 1M, 2M + K-NeAS 1M..4M = 6 configs x 2 seeds, + one FDK run
+    assert len(cells) == 2 * (6 * 2 + 1)
+    assert len({c.id for c in cells}) == len(cells)
+    foot = [c for c in cells if c.scene == "foot"]
+    assert sorted((c.method, c.k) for c in foot if c.seed == 0 and c.method != "fdk") == [
+        ("k-neas", 1), ("k-neas", 2), ("k-neas", 3), ("k-neas", 4), ("neas-1m", 1), ("neas-2m", 2)]
+    assert {c.seed for c in foot if c.method != "fdk"} == {0, 1}
+    fdk = [c for c in foot if c.method == "fdk"]
+    assert len(fdk) == 1 and fdk[0].k is None and fdk[0].seed == 0
+
+    by = {(c.method, c.k, c.seed): c for c in foot}
+    out = Path("/o/cells/x")
+    assert by[("k-neas", 3, 1)].train_args(out) == ["k-neas", "--scene", "foot", "--num-materials", "3", "--seed", "1",
+                                                     "--preset", "tiny", "--output-dir", "/o/cells/x"]
+    # neas-1m / neas-2m have fixed K: no --num-materials; fdk has none either
+    assert "--num-materials" not in by[("neas-1m", 1, 0)].train_args(out)
+    assert "--num-materials" not in by[("neas-2m", 2, 0)].train_args(out)
+    assert by[("fdk", None, 0)].train_args(out)[:3] == ["fdk", "--scene", "foot"]
+    # ids are deterministic and folder-safe
+    assert by[("k-neas", 2, 0)].id == "foot__k-neas__K2__vall__s0__tiny"
+    assert Cell("data/foot_50.pickle", "k-neas", 2, None, 0, "tiny").id.startswith("foot_50-")
+
+
+def test_views_and_ablation_grids():
+    cells = grid.views_table(["chest"], (0, 1, 2), "cpu")
+    learned = [c for c in cells if c.method != "fdk"]
+    assert len(learned) == 4 * 2 * 3
+    assert {c.views for c in learned} == {5, 10, 20, 50}
+    assert {(c.method, c.k) for c in learned} == {("neas-2m", 2), ("k-neas", 2)}
+    assert sorted(c.views for c in cells if c.method == "fdk") == [5, 10, 20, 50]
+    assert "--views" in learned[0].train_args("o") and "--num-materials" in [a for c in learned if c.method == "k-neas" for a in c.train_args("o")]
+
+    ab = grid.ablation(["foot"], (0,), "cpu")
+    assert [c.method for c in ab] == ["kselector", "kselector-floater", "kselector-shared", "k-neas", "fdk"]
+    assert all(c.k == 2 for c in ab if c.method != "fdk")
+    assert all(c.train_args("o")[3:5] == ["--num-materials", "2"] for c in ab if c.method != "fdk")
+
+
+def test_generic_grid_and_validation():
+    cells = grid.grid(["foot"], ["k-neas", "neas-2m", "naf", "fdk"], (2, 3), (10, None), (0, 1), "tiny")
+    methods = [(c.method, c.k, c.views, c.seed) for c in cells]
+    assert sum(m == "k-neas" for m, *_ in methods) == 2 * 2 * 2
+    assert sum(m == "neas-2m" for m, *_ in methods) == 2 * 2  # K fixed at 2
+    assert all(k is None for m, k, *_ in methods if m in ("naf", "fdk"))
+    assert sum(m == "fdk" for m, *_ in methods) == 2  # once per view count, seed 0
+    with pytest.raises(KneasError, match="number of seeds"):
+        grid.seeds_from_count(0)
+    with pytest.raises(KneasError, match="unknown preset"):
+        grid.table1(["foot"], (0,), "fast")
+    with pytest.raises(KneasError, match="unknown method"):
+        grid.check_methods(["k-neas", "nope"])
+    # extra kneas-train arguments change the cell identity
+    assert Cell("foot", "k-neas", 2, None, 0, "tiny", ("--trainer.epochs", "5")).id != Cell("foot", "k-neas", 2, None, 0, "tiny").id
+
+
+def test_paper_numbers_typed_in_exactly():
+    t1 = paper_results.TABLE1
+    assert t1["Abdomen"]["3M"]["K-NeAS"] == {"psnr2d": 47.687, "ssim2d": 0.994, "psnr3d": 33.276, "ssim3d": 0.858}
+    assert t1["Jaw"]["1M"]["NeAS"] == {"psnr2d": 39.451, "ssim2d": 0.966, "psnr3d": 34.099, "ssim3d": 0.882}
+    assert "NeAS" not in t1["Chest"]["4M"]
+    assert sum(len(models) for rows in t1.values() for models in rows.values()) == 4 * 6
+    assert paper_results.TABLE2[10]["K-NeAS"]["psnr3d"] == 24.486
+    assert paper_results.TABLE3["K-Selector + Shared Body"] == {"psnr2d": 42.544, "ssim2d": 0.981, "psnr3d": 31.245, "ssim3d": 0.883}
+    assert paper_results.paper_value("foot", "k-neas", 2, None, "psnr2d") == 42.570  # Table 1 first
+    assert paper_results.paper_value("foot", "k-neas", 2, None, "psnr2d", table="ablation") == 43.245
+    assert paper_results.paper_value("data/chest_50.pickle", "neas-2m", 2, 5, "ssim2d") == 0.899
+    assert paper_results.paper_value("foot", "neas-1m", 2, None, "psnr2d") is None
+    assert paper_results.paper_value("mine", "k-neas", 2, None, "psnr2d") is None
+
+
+# ---------------------------------------------------------------------------- aggregation (hand-written fixtures)
+
+
+def _write_metrics(out: Path, cell: Cell, values: dict, source: str, stamp: str = "20240101-000000") -> None:
+    run = cell_dir(out, cell) / cell.scene / cell.method / stamp
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"method": cell.method, "scene": cell.scene, "views": cell.views, "seed": cell.seed,
+                                                 "num_materials": cell.k}))
+    metrics = {"parameters": 1, "steps": 10, "wall_time_s": 3.0, "preset": "tiny", "scene_source": source, **values}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+
+
+def _m(p2, s2, p3, s3):
+    return {"psnr2d": p2, "ssim2d": s2, "psnr3d": p3, "ssim3d": s3, "psnr3d_ls": p3 + 1}
+
+
+def test_table1_aggregation_mean_std_bold_paper_and_fdk(tmp_path):
+    cells = grid.table1(["foot", "jaw"], (0, 1), "tiny", ks=(1, 2, 3))
+    public = "public benchmark data/foot_50.pickle"
+    fixtures = {
+        ("foot", "neas-1m", 1): [_m(40.0, 0.90, 30.0, 0.80), _m(42.0, 0.92, 31.0, 0.82)],
+        ("foot", "neas-2m", 2): [_m(41.0, 0.91, 30.5, 0.85), _m(41.0, 0.91, 30.5, 0.85)],
+        ("foot", "k-neas", 1): [_m(39.0, 0.95, 29.0, 0.70), _m(39.5, 0.95, 29.0, 0.70)],
+        ("foot", "k-neas", 2): [_m(43.0, 0.93, 32.0, 0.81), _m(44.0, 0.93, 33.0, 0.81)],
+        ("foot", "k-neas", 3): [_m(42.0, 0.94, 31.0, 0.81)],  # seed 1 failed
+        ("foot", "fdk", None): [_m(50.0, 0.99, 40.0, 0.99)],  # the reference is never bold, even when best
+        ("jaw", "neas-1m", 1): [_m(30.0, 0.8, 20.0, 0.7), _m(30.0, 0.8, 20.0, 0.7)],
+    }
+    for c in cells:
+        vals = fixtures.get((c.scene, c.method, c.k))
+        if vals and c.seed < len(vals):
+            _write_metrics(tmp_path, c, vals[c.seed], public if c.scene == "foot" else "built-in phantom jaw (cached)")
+    failed = next(c for c in cells if (c.scene, c.method, c.k, c.seed) == ("foot", "k-neas", 3, 1))
+    cell_dir(tmp_path, failed).mkdir(parents=True)
+    (cell_dir(tmp_path, failed) / "cell.json").write_text(json.dumps({"status": "failed", "error": "boom"}))
+
+    table, groups, paths = aggregate.write_tables(tmp_path, "table1", cells)
+    g = groups[("foot", "neas-1m", 1, None)]
+    assert g.mean("psnr2d") == pytest.approx(41.0) and g.std("psnr2d") == pytest.approx(2 ** 0.5)  # sample std
+    assert groups[("foot", "k-neas", 3, None)].failed == 1
+
+    md = paths[0].read_text()
+    assert paths[0].name == "table1.md" and paths[1].name == "table1.csv"
+    lines = {tuple(x.strip() for x in line.strip("|").split("|")[:2]): line for line in md.splitlines() if line.startswith("| ")}
+    header = md.splitlines()[2]
+    assert "2D PSNR NeAS | 2D PSNR NeAS (paper) | 2D PSNR K-NeAS | 2D PSNR K-NeAS (paper)" in header
+    row1 = [x.strip() for x in lines[("foot", "1M")].strip("|").split("|")]
+    # Scene, Config, 2D PSNR: NeAS, NeAS paper, K-NeAS, K-NeAS paper, 2D SSIM: ...
+    assert row1[2] == "41.000 ± 1.414" and row1[3] == "42.230"
+    assert row1[4] == "39.250 ± 0.354" and row1[5] == "42.717"
+    assert row1[8] == "**0.950 ± 0.000**"  # best 2D SSIM of foot
+    row2 = [x.strip() for x in lines[("foot", "2M")].strip("|").split("|")]
+    assert row2[4] == "**43.500 ± 0.707**"  # best 2D PSNR of foot
+    assert row2[10] == "30.500 ± 0.000" and row2[11] == "31.092"
+    assert row2[12] == "**32.500 ± 0.707**" and row2[13] == "31.388"
+    row3 = [x.strip() for x in lines[("foot", "3M")].strip("|").split("|")]
+    assert row3[2] == "—" and row3[3] == "—"  # NeAS has no 3M
+    assert row3[4] == "42.000 (n=1/2)" and row3[5] == "42.800"
+    fdk = [x.strip() for x in lines[("foot", "FDK (ref.)")].strip("|").split("|")]
+    assert fdk[2] == "50.000" and "**" not in lines[("foot", "FDK (ref.)")]
+    # jaw is a built-in phantom: no paper numbers beside ours, and a note says why
+    jaw1 = [x.strip() for x in lines[("jaw", "1M")].strip("|").split("|")]
+    assert jaw1[2] == "**30.000 ± 0.000**" and jaw1[3] == "—"
+    jaw2 = [x.strip() for x in lines[("jaw", "2M")].strip("|").split("|")]
+    assert jaw2[2] == "—"  # never run
+    assert "jaw: built-in synthetic phantom" in md
+
+    import csv
+
+    rows = list(csv.DictReader(paths[1].open()))
+    foot1 = next(r for r in rows if r["scene"] == "foot" and r["config"] == "1M")
+    assert float(foot1["psnr2d_neas_mean"]) == pytest.approx(41.0) and float(foot1["psnr2d_neas_std"]) == pytest.approx(2 ** 0.5)
+    assert foot1["psnr2d_neas_n"] == "2" and foot1["psnr2d_kneas_paper"] == "42.717"
+    assert float(foot1["psnr3d_ls_neas_mean"]) == pytest.approx(31.5)
+    assert next(r for r in rows if r["config"] == "FDK (ref.)")["reference"] == "1"
+    per_cell = list(csv.DictReader(paths[2].open()))
+    assert len(per_cell) == len(cells)
+    assert next(r for r in per_cell if r["cell_id"] == failed.id)["status"] == "failed"
+
+
+def test_views_and_ablation_layouts(tmp_path):
+    cells = grid.views_table(["chest"], (0,), "tiny", views=(5, 10))
+    for c in cells:
+        base = {"neas-2m": 30.0, "k-neas": 31.0, "fdk": 20.0}[c.method] + c.views
+        _write_metrics(tmp_path, c, _m(base, 0.9, base - 10, 0.5), "public benchmark data/chest_50.pickle")
+    _, _, paths = aggregate.write_tables(tmp_path, "views", cells)
+    md = paths[0].read_text()
+    row5 = next(line for line in md.splitlines() if line.startswith("| chest | 5 |"))
+    parts = [x.strip() for x in row5.strip("|").split("|")]
+    assert parts[2:6] == ["35.000", "30.473", "**36.000**", "30.813"]  # better model at this view count in bold
+    assert any(line.startswith("| chest | 10 FDK (ref.) |") for line in md.splitlines())
+
+    ab = grid.ablation(["foot"], (0,), "tiny")
+    for i, c in enumerate(ab):
+        _write_metrics(tmp_path / "ab", c, _m(40.0 + i, 0.9, 30.0, 0.8), "public benchmark data/foot_50.pickle")
+    _, _, paths = aggregate.write_tables(tmp_path / "ab", "ablation", ab)
+    md = paths[0].read_text()
+    assert "| foot | K-Selector + Floater Reg | kselector-floater | 2 | 41.000 | 43.115 |" in md
+    assert "| foot | K-NeAS | k-neas | 2 | **43.000** | 43.245 |" in md
+    assert "| foot | FDK (ref.) | fdk | — | 44.000 | — |" in md
+
+
+# ---------------------------------------------------------------------------- running, resume, failures
+
+
+def test_resume_skips_complete_cells_and_records_failures(tmp_path, fake_prefix, monkeypatch):
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    monkeypatch.setenv("FAKE_FAIL", "foot/k-neas/2/1")
+    out = tmp_path / "bench"
+    cells = grid.table1(["foot"], (0, 1), "tiny", ks=(1, 2))
+    assert len(cells) == 9
+    # one cell is already complete from an earlier run: it must not be trained again
+    _write_metrics(out, cells[0], _m(1, 1, 1, 1), "built-in")
+    seen = []
+    results = backends.LocalBackend(workers=1).run([c for c in cells if not is_complete(out, c)], out, fake_prefix,
+                                                   on_result=lambda c, r: seen.append((c.id, r.status)))
+    assert len(_calls(log)) == 8 and len(seen) == 8
+    failed = [r for r in results if r.status == "failed"]
+    assert [r.cell_id for r in failed] == ["foot__k-neas__K2__vall__s1__tiny"]
+    record = json.loads((out / "cells" / failed[0].cell_id / "cell.json").read_text())
+    assert record["status"] == "failed" and record["returncode"] == 3 and "boom in foot/k-neas/2/1" in record["error"]
+    assert "train.log" in os.listdir(out / "cells" / failed[0].cell_id)
+    done = json.loads((cell_dir(out, cells[1]) / "cell.json").read_text())
+    assert done["status"] == "done" and Path(done["run_dir"]).joinpath("metrics.json").is_file() and done["wall_time_s"] > 0
+
+    # rerun: only the failed cell runs
+    monkeypatch.delenv("FAKE_FAIL")
+    log.unlink()
+    todo = [c for c in cells if not is_complete(out, c)]
+    assert [c.id for c in todo] == [failed[0].cell_id]
+    results = backends.LocalBackend().run(todo, out, fake_prefix)
+    assert [r.status for r in results] == ["done"] and len(_calls(log)) == 1
+    # and a third time nothing; run_cell itself also refuses to redo a complete cell
+    assert not [c for c in cells if not is_complete(out, c)]
+    assert run_cell(cells[3], out, fake_prefix).status == "skipped"
+    assert len(_calls(log)) == 1
+
+
+def test_local_workers_get_one_gpu_each_or_share_the_cpus(tmp_path, fake_prefix, monkeypatch):
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    cells = grid.grid(["foot"], ["k-neas"], (1, 2, 3, 4), (None,), (0,), "tiny")
+    results = backends.LocalBackend(workers=2, gpus=["0", "1"]).run(cells, tmp_path / "g", fake_prefix)
+    assert sorted(r.status for r in results) == ["done"] * 4
+    assert {c["cuda"] for c in _calls(log)} <= {"0", "1"} and len(_calls(log)) == 4
+    log.unlink()
+    cpu = backends.LocalBackend(workers=2, gpus=[])
+    cpu.run(grid.grid(["jaw"], ["k-neas"], (2,), (None,), (0, 1), "tiny"), tmp_path / "c", fake_prefix)
+    expected = str(max(1, backends.cpu_count() // 2))
+    assert [c["cuda"] for c in _calls(log)] == [None, None] and {c["omp"] for c in _calls(log)} == {expected}
+
+
+def test_missing_trainer_is_a_recorded_failure(tmp_path):
+    cell = Cell("foot", "k-neas", 2, None, 0, "tiny")
+    r = run_cell(cell, tmp_path, (sys.executable, str(tmp_path / "does_not_exist.py")))
+    assert r.status == "failed" and r.returncode != 0 and "does_not_exist.py" in r.error
+    assert find_metrics(cell_dir(tmp_path, cell)) is None
+
+
+def test_ray_missing_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)
+    with pytest.raises(KneasError, match=r"pip install 'kneas\[distributed\]'"):
+        backends.make_backend("ray")
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+def test_cli_runs_a_table_then_trains_nothing(tmp_path, fake_prefix, monkeypatch, capsys):
+    from kneas_method.cli import bench as cli
+
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    monkeypatch.setattr(cli, "TRAIN_PREFIX", fake_prefix)
+    out = tmp_path / "bench"
+    argv = ["ablation", "--preset", "tiny", "--seeds", "2", "--output-dir", str(out)]
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 0
+    assert len(_calls(log)) == 4 * 2 + 1
+    md = (out / "table3_ablation.md").read_text()
+    assert "| foot | K-NeAS | k-neas | 2 | **42.700 ± 0.707** |" in md  # fake metrics: 42 + 0.1 K + seed
+    assert (out / "table3_ablation.csv").is_file()
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 0 and len(_calls(log)) == 9  # nothing trained again
+    assert "9 already complete, 0 to run" in capsys.readouterr().out
+
+
+def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
+    from kneas_method.cli import bench as cli
+
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["views", "--preset", "tiny", "--seeds", "1", "--dry-run", "--output-dir", str(tmp_path / "o")])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "12 of 12 cells to run" in out and "steps x 0.009 s (tiny, cpu)" in out
+    assert not (tmp_path / "o").exists()  # a dry run creates nothing
+    for argv, msg in ((["table1", "--seeds", "0"], "number of seeds"),
+                      (["grid", "--methods", "nope"], "unknown method"),
+                      (["table1", "--train-args=--seed 3"], "must not contain --seed"),
+                      (["table1", "--workers", "2", "--backend", "ray"], "--workers is for the local backend")):
+        with pytest.raises(SystemExit) as exc:
+            cli.main([*argv, "--output-dir", str(tmp_path / "e")])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert msg in err and err.count("\n") == 1
