@@ -18,6 +18,12 @@ configuration:
 | kselector-shared | K (3) | shared | soft | off | automatic or given |
 | k-neas | K (3) | shared | soft | on | automatic or given |
 | naf | — | NAF field (hash grid + MLP, no SDF) | — | off | — |
+| fdk | — | FDK / FBP reconstruction (``reconstructor="fdk"``), no model | — | — | — |
+
+K of the K-material methods (kselector*, k-neas) is picked by BIC from the GMM
+fit on the prior (SPEC §4) when ``num_materials`` is None (the default) and the
+bounds are automatic; ``--num-materials K`` fixes it; a ``--bounds`` file gives it.
+The method's ``model.num_materials`` (3) is only the default shown by a dry run.
 """
 
 from __future__ import annotations
@@ -32,6 +38,8 @@ from .registry import MethodSpecification
 
 PRESETS = ("auto", "paper", "cpu", "tiny")
 BOUNDS_SOURCES = ("wide", "auto", "none")
+RECONSTRUCTORS = ("neural", "fdk")
+BOUNDS_METHODS = ("gmm", "quantile", "bayes")
 
 
 @dataclass
@@ -42,19 +50,21 @@ class TrainerConfig:
         epochs: training epochs (one step per training projection per epoch; paper 1000).
         prior_epochs: epochs of the single-material prior model trained for the
             automatic bounds (SPEC §4); paper 1000.
-        lr: Adam learning rate (1e-3).
+        lr: Adam learning rate (paper 1e-3; None = the preset's).
         lr_decay_at: fraction of epochs after which the rate is multiplied by
             ``lr_decay_factor`` (0.5 -> after 500 of 1000 epochs; factor 0.1).
         eval_every / checkpoint_every: epochs between held-out evaluations /
             checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
         eval_views: held-out views rendered at intermediate evaluations (None = all).
-        log_every: steps between log lines.
+        log_every: steps between loss-history / learning-rate records.
+        max_bad_steps: this many non-finite losses in a row end the run (the last
+            good checkpoint is kept).
     """
 
     epochs: Optional[int] = None
     prior_epochs: Optional[int] = None
-    lr: float = 1e-3
+    lr: Optional[float] = None
     lr_decay_at: float = 0.5
     lr_decay_factor: float = 0.1
     eval_every: Optional[int] = None
@@ -62,6 +72,7 @@ class TrainerConfig:
     eval_chunk: Optional[int] = None
     eval_views: Optional[int] = None
     log_every: int = 50
+    max_bad_steps: int = 5
 
 
 @dataclass
@@ -82,6 +93,15 @@ class TrainConfig:
             ``model.alphas/betas`` are given: ``wide`` (NeAS defaults), ``auto``
             (GMM on a prior single-material model, SPEC §4) or ``none`` (no SDF).
         device: ``auto`` (cuda if available), ``cpu``, ``cuda``, ``cuda:1``...
+        reconstructor: ``neural`` (train the model) or ``fdk`` (FDK/FBP baseline, no model).
+        fdk_filter: ramp-filter window of the FDK baseline (``ram-lak``, ``shepp-logan``, ``cosine``, ``hann``).
+        bounds_method: GMM boundary rule for automatic bounds: ``gmm`` (paper, SPEC §4),
+            ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
+        reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
+            preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
+        data_dir: where public benchmark pickles ``<name>_50.pickle`` are looked for.
+        resume: a run folder to continue (``kneas-train --resume RUN_DIR``); its
+            ``config.json`` is used.
     """
 
     method: str = "k-neas"
@@ -95,6 +115,12 @@ class TrainConfig:
     bounds: Optional[str] = None
     bounds_source: str = "auto"
     device: str = "auto"
+    reconstructor: str = "neural"
+    fdk_filter: str = "ram-lak"
+    bounds_method: str = "gmm"
+    reuse_prior: bool = True
+    data_dir: str = "data"
+    resume: Optional[str] = None
     model: ModelConfig = field(default_factory=ModelConfig)
     datamanager: CTDataManagerConfig = field(default_factory=CTDataManagerConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
@@ -139,4 +165,13 @@ naf = MethodSpecification(
         model=ModelConfig(field="naf", num_materials=1, floater=False, lambda_eikonal=0.0),
     ),
     description="NAF baseline: hash grid + MLP attenuation field, no surfaces",
+)
+fdk = MethodSpecification(
+    config=TrainConfig(
+        method="fdk",
+        reconstructor="fdk",
+        bounds_source="none",
+        model=ModelConfig(field="naf", num_materials=1, floater=False, lambda_eikonal=0.0),
+    ),
+    description="FDK baseline: filtered back-projection of the training views (no training, 0 parameters)",
 )

@@ -22,7 +22,7 @@ from typing import Any
 import torch
 
 from .errors import ConfigError
-from .methods import PRESETS, TrainConfig
+from .methods import BOUNDS_METHODS, BOUNDS_SOURCES, PRESETS, RECONSTRUCTORS, TrainConfig
 
 PAPER_HASHGRID = {"num_levels": 14, "features_per_level": 2, "log2_hashmap_size": 19, "base_resolution": 16, "per_level_scale": 2.0}
 
@@ -31,24 +31,25 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "hashgrid": PAPER_HASHGRID,
         "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
-        "trainer": {"epochs": 1000, "prior_epochs": 1000, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None},
+        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None},
     },
-    # PROVISIONAL (to be tuned by measurement): a 8-level, 2^16 grid with finest
-    # resolution ~270 (the foot volume is 256^3), 256 + 64 rays x 64 samples,
-    # the eikonal on a quarter of the samples. Measured ~0.8-1.2 s/step on 2
-    # busy cores (torch hash grid), so ~24 epochs x 50 views = 1200 steps
-    # is already ~15-20 min: the training work should measure on idle cores.
+    # Tuned on 2 shared CPU cores (torch hash grid): 6 levels up to resolution
+    # ~168 (the built-in volumes are 128^3), 256 + 64 rays x 64 samples, the
+    # exact eikonal on every sample (reusing the render's SDF outputs is cheaper
+    # than a separate forward on a fraction), 64 evenly spaced evaluation samples
+    # (the paper's 128 samples for 256^3 volumes, scaled to 128^3), a 3-epoch
+    # prior and an 8-epoch model. See docs / the training report for timings.
     "cpu": {
-        "hashgrid": {"num_levels": 8, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.5},
-        "model": {"num_samples": 64, "num_eval_samples": 96, "eikonal_fraction": 0.25},
+        "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
+        "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 16, "prior_epochs": 8, "eval_every": 10, "checkpoint_every": 10, "eval_chunk": 4096, "eval_views": 5},
+        "trainer": {"epochs": 8, "prior_epochs": 3, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 8192, "eval_views": 3},
     },
     "tiny": {
         "hashgrid": {"num_levels": 3, "features_per_level": 2, "log2_hashmap_size": 10, "base_resolution": 4, "per_level_scale": 2.0},
         "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
-        "trainer": {"epochs": 2, "prior_epochs": 1, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2},
+        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2},
     },
 }
 
@@ -77,6 +78,16 @@ def resolve_device(device: str) -> torch.device:
     return dev
 
 
+def k_is_chosen(config: TrainConfig) -> bool:
+    """True when K is left open for training to decide: a soft-selector, multi-head
+    SDF method with ``num_materials`` unset and no explicit ``model.alphas``; K then
+    comes from BIC on the prior (automatic bounds) or from the ``--bounds`` file."""
+    m = config.model
+    return (config.num_materials is None and config.reconstructor == "neural" and m.field != "naf"
+            and m.attenuation != "single" and m.selector != "hard" and m.alphas is None
+            and (config.bounds is not None or config.bounds_source == "auto"))
+
+
 def _fill(obj, values: dict[str, Any]):
     changes = {k: v for k, v in values.items() if getattr(obj, k) is None}
     return dataclasses.replace(obj, **changes) if changes else obj
@@ -99,7 +110,16 @@ def resolve(config: TrainConfig) -> TrainConfig:
     elif model.encoding_options is None:
         model = dataclasses.replace(model, encoding_options={})
     K = config.num_materials
-    if K is not None:
+    if config.reconstructor not in RECONSTRUCTORS:
+        raise ConfigError(f"reconstructor {config.reconstructor!r} is not known; use one of {', '.join(RECONSTRUCTORS)}")
+    if config.bounds_source not in BOUNDS_SOURCES:
+        raise ConfigError(f"bounds_source {config.bounds_source!r} is not known; use one of {', '.join(BOUNDS_SOURCES)}")
+    if config.bounds_method not in BOUNDS_METHODS:
+        raise ConfigError(f"bounds_method {config.bounds_method!r} is not known; use one of {', '.join(BOUNDS_METHODS)}")
+    if config.reconstructor == "fdk":
+        if K is not None:
+            raise ConfigError(f"method {config.method!r} reconstructs with FDK and has no materials; drop --num-materials")
+    elif K is not None:
         if model.field == "naf":
             raise ConfigError(f"method {config.method!r} has no materials; drop --num-materials")
         if K < 1:
@@ -109,7 +129,7 @@ def resolve(config: TrainConfig) -> TrainConfig:
         if model.selector == "hard" and K != 2:
             raise ConfigError(f"method {config.method!r} uses the hard selector, which works only with 2 materials; use --num-materials 2 or a soft-selector method such as k-neas")
         model = dataclasses.replace(model, num_materials=K)
-    elif model.field != "naf":
+    elif model.field != "naf" and not k_is_chosen(dataclasses.replace(config, model=model)):
         K = model.num_materials
     return dataclasses.replace(
         config,

@@ -9,7 +9,8 @@ Examples::
     kneas-train k-neas --scene foot
     kneas-train neas-1m --dry-run --preset paper
     kneas-train k-neas --num-materials 4 --dry-run --preset paper
-    kneas-train --config outputs/foot/k-neas/config.json
+    kneas-train --config outputs/foot/k-neas/<timestamp>/config.json
+    kneas-train --resume outputs/foot/k-neas/<timestamp>
 """
 
 from __future__ import annotations
@@ -25,6 +26,25 @@ from ..config import to_dict, update_from_dict
 from ..errors import ConfigError, KneasError
 from ..methods import TrainConfig
 from .common import run_cli
+
+
+def _pop_resume(argv: list[str]) -> tuple[Optional[str], list[str]]:
+    """``--resume RUN_DIR`` -> (RUN_DIR, the other arguments)."""
+    out, path, i = [], None, 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--resume":
+            if i + 1 >= len(argv):
+                raise ConfigError("--resume needs a run folder: --resume outputs/foot/k-neas/<timestamp>")
+            path = argv[i + 1]
+            i += 2
+            continue
+        if a.startswith("--resume="):
+            path = a.split("=", 1)[1]
+        else:
+            out.append(a)
+        i += 1
+    return path, out
 
 
 def _pop_config_file(argv: list[str]) -> tuple[Optional[str], list[str]]:
@@ -64,7 +84,16 @@ def parse_args(argv: Sequence[str]) -> TrainConfig:
     import tyro
 
     argv = list(argv)
+    resume, argv = _pop_resume(argv)
     config_file, argv = _pop_config_file(argv)
+    if resume is not None:
+        run = Path(resume)
+        if not (run / "config.json").is_file():
+            raise ConfigError(f"--resume {resume}: no config.json there; give a run folder written by kneas-train "
+                              "(DIR/<scene>/<method>/<timestamp>)")
+        if config_file is not None:
+            raise ConfigError("give either --resume RUN_DIR or --config FILE, not both (a resumed run uses its own config.json)")
+        config_file = str(run / "config.json")
     specs = registry.methods()
     defaults = {name: dataclasses.replace(spec.config, method=name) for name, spec in specs.items()}
     descriptions = {name: spec.description for name, spec in specs.items()}
@@ -78,16 +107,26 @@ def parse_args(argv: Sequence[str]) -> TrainConfig:
             argv.insert(0, method)
     sub = tyro.extras.subcommand_type_from_defaults(defaults, descriptions)
     config = tyro.cli(sub, args=argv, prog="kneas-train", description="Train a kneas method (subcommand = registered method).")
+    if resume is not None:
+        config = dataclasses.replace(config, resume=str(resume))
     return config
 
 
 def dry_run(config: TrainConfig) -> int:
     """Build the model (no scene data, bounds = placeholders), print the config and ``parameters: N``."""
+    print(f"method: {config.method}  scene: {config.scene}  views: {config.views or 'all'}  seed: {config.seed}")
+    if config.reconstructor == "fdk":
+        print(f"reconstructor: fdk (filter {config.fdk_filter}); no model, no training")
+        print("parameters: 0")
+        return 0
     model = config.model.setup(scale=1.0)
     m = config.model
-    print(f"method: {config.method}  scene: {config.scene}  views: {config.views or 'all'}  seed: {config.seed}")
     if model.has_sdf:
-        print(f"model: field={m.field} encoding={m.encoding} attenuation={m.attenuation} selector={m.selector} K={model.num_materials} floater={'on' if m.floater else 'off'} bounds={config.bounds or config.bounds_source}")
+        k_note = ""
+        if presets.k_is_chosen(config):
+            k_note = (" (method default; K is read from the bounds file at training time)" if config.bounds else
+                      " (method default; K is chosen by BIC at training time, --num-materials K fixes it)")
+        print(f"model: field={m.field} encoding={m.encoding} attenuation={m.attenuation} selector={m.selector} K={model.num_materials}{k_note} floater={'on' if m.floater else 'off'} bounds={config.bounds or config.bounds_source}")
     else:
         print(f"model: field={m.field} encoding={m.encoding} (no surfaces)")
     print(f"encoding: {json.dumps(m.encoding_options, separators=(',', ':'))}")

@@ -1,0 +1,142 @@
+"""The shared evaluation of a trained model or a reconstructed volume (SPEC §5).
+
+Used by ``kneas-train`` at the end of a run and by ``kneas-eval``:
+
+* :func:`evaluate_model` ``(model, scene, config, device) -> dict``: 2D metrics on
+  **all** held-out views (rendered with ``config.model.num_eval_samples`` evenly
+  spaced points per ray, ``config.trainer.eval_chunk`` rays at a time) and 3D
+  metrics on the model's attenuation sampled at the voxel centres, data units.
+* :func:`evaluate_volume` ``(volume, scene) -> dict``: the same metrics for a
+  voxel volume (FDK): 2D metrics by forward-projecting the volume to the
+  held-out views (``data.voxel_projector``), 3D metrics directly.
+
+Both return JSON-able dicts: ``psnr2d``, ``ssim2d`` (means over the held-out
+views), ``psnr2d_per_view``, ``ssim2d_per_view``, ``n_views``; with a ground
+truth volume ``psnr3d``, ``ssim3d`` (exact unit conversion, peak 1, no fitting),
+``psnr3d_ls``, ``ssim3d_ls``, ``ls_scale``, ``mse3d``. The helpers
+:func:`render_views` and :func:`sample_volume` return the arrays behind them
+(for figures and exports).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..evaluation.metrics import projection_metrics, volume_metrics
+
+__all__ = ["evaluate_model", "evaluate_volume", "render_views", "sample_volume", "model_metrics_from_arrays"]
+
+Progress = Optional[Callable[[int, int], None]]
+
+
+def _chunk(config, default: int = 4096) -> int:
+    try:
+        return int(config.trainer.eval_chunk or default)
+    except AttributeError:
+        return default
+
+
+def _eval_samples(config) -> Optional[int]:
+    try:
+        return config.model.num_eval_samples
+    except AttributeError:
+        return None
+
+
+@torch.no_grad()
+def render_views(model, scene, angles, *, device="cpu", chunk: int = 4096, n_samples: Optional[int] = None,
+                 progress: Progress = None) -> np.ndarray:
+    """Render the views at ``angles`` [N] (rad): line integrals [N, nV, nU] (float32).
+
+    Evenly spaced samples (``n_samples``, default the model's ``num_eval_samples``).
+    ``progress(done_rays, total_rays)`` is called after every chunk.
+    """
+    was_training = model.training
+    model.eval()
+    geometry = scene.geometry
+    near, far = geometry.near_far
+    nu, nv = geometry.n_detector
+    angles = np.asarray(angles, dtype=np.float64).reshape(-1)
+    out = np.zeros((len(angles), nv, nu), dtype=np.float32)
+    total, done = len(angles) * nu * nv, 0
+    try:
+        for k, a in enumerate(angles):
+            origins, directions = geometry.rays(angles[k : k + 1], device=device)
+            origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+            parts = []
+            for i in range(0, len(origins), chunk):
+                r = model.render(origins[i : i + chunk], directions[i : i + chunk], near, far, n_samples, stratified=False)
+                parts.append(r.line_integral.float().cpu())
+                done += len(parts[-1])
+                if progress is not None:
+                    progress(done, total)
+            out[k] = torch.cat(parts).reshape(nv, nu).numpy()
+    finally:
+        model.train(was_training)
+    return out
+
+
+@torch.no_grad()
+def sample_volume(model, geometry, *, device="cpu", chunk: int = 65536, progress: Progress = None) -> np.ndarray:
+    """The model's attenuation ``mu`` (data units) at the voxel centres: [nx, ny, nz] float32."""
+    was_training = model.training
+    model.eval()
+    pts = geometry.voxel_centres(device=device).reshape(-1, 3)
+    out = torch.empty(len(pts), dtype=torch.float32)
+    try:
+        for i in range(0, len(pts), chunk):
+            out[i : i + chunk] = model.query(pts[i : i + chunk])["mu"].float().cpu()
+            if progress is not None:
+                progress(min(i + chunk, len(pts)), len(pts))
+    finally:
+        model.train(was_training)
+    return out.reshape(tuple(geometry.n_voxel)).numpy()
+
+
+def model_metrics_from_arrays(pred_proj: np.ndarray, scene, volume: Optional[np.ndarray]) -> dict:
+    """Metrics dict from rendered held-out projections [N, nV, nU] and a volume [nx, ny, nz] (data units)."""
+    out = projection_metrics(pred_proj, np.asarray(scene.val.projections))
+    if volume is not None and scene.image is not None:
+        out.update(volume_metrics(volume, np.asarray(scene.image, dtype=np.float32)))
+    return out
+
+
+def evaluate_model(model, scene, config, device, *, progress: Progress = None, return_arrays: bool = False):
+    """2D metrics on all held-out views and 3D metrics at the voxel centres (data units).
+
+    Args:
+        model: a :class:`~kneas_method.model.CTModel` (bounds set, weights loaded).
+        scene: the scene (its ``val`` views are the held-out views; ``image`` the
+            ground truth, if any).
+        config: the resolved TrainConfig (uses ``model.num_eval_samples`` and ``trainer.eval_chunk``).
+        device: torch device the model lives on.
+        progress: optional ``progress(done, total)`` over rendered rays and then voxels.
+        return_arrays: also return ``(projections [N, nV, nU], volume [nx, ny, nz] or None)``.
+
+    Returns:
+        The metrics dict (see the module docstring), or ``(metrics, arrays)``.
+    """
+    device = torch.device(device)
+    proj = render_views(model, scene, scene.val.angles, device=device, chunk=_chunk(config),
+                        n_samples=_eval_samples(config), progress=progress)
+    volume = sample_volume(model, scene.geometry, device=device, progress=progress) if scene.image is not None else None
+    metrics = model_metrics_from_arrays(proj, scene, volume)
+    return (metrics, (proj, volume)) if return_arrays else metrics
+
+
+def evaluate_volume(volume, scene, *, return_arrays: bool = False):
+    """Metrics of a voxel volume [nx, ny, nz] (data units, the scene's grid).
+
+    2D: the volume is forward-projected (trilinear, half-voxel steps) to every
+    held-out view and scored like a model's rendering; 3D: compared with the
+    ground truth, if any.
+    """
+    from ..data.voxel_projector import project_volume
+
+    vol = np.asarray(volume.detach().cpu() if hasattr(volume, "detach") else volume, dtype=np.float32)
+    proj = project_volume(vol, scene.geometry, np.asarray(scene.val.angles))
+    metrics = model_metrics_from_arrays(proj, scene, vol)
+    return (metrics, (proj, vol)) if return_arrays else metrics
