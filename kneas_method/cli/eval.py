@@ -1,5 +1,128 @@
-"""`kneas-eval` (placeholder until the evaluation work lands)."""
+"""`kneas-eval RUN_DIR`: re-evaluate a trained run on all held-out views (SPEC §5).
 
-from .common import not_built_yet
+    kneas-eval outputs/foot/k-neas/20250101-120000
+    kneas-eval --checkpoint outputs/foot/k-neas/20250101-120000/checkpoints/step-00000800.ckpt
+    kneas-eval outputs/foot/k-neas/20250101-120000 --scene foot_noisy_50.pickle -o eval-noisy/
 
-main = not_built_yet("kneas-eval", "evaluation")
+Writes ``metrics.json`` and figures to ``-o DIR`` (default ``RUN_DIR/eval-<timestamp>/``):
+
+* 2D: PSNR/SSIM per held-out view and their means (intensity domain);
+* 3D: PSNR/SSIM at the voxel centres with the exact unit conversion
+  (``psnr3d``, ``ssim3d``) and the least-squares-rescaled variant
+  (``psnr3d_ls``, ``ssim3d_ls``, ``ls_scale``);
+* built-in scenes, SDF methods: per ground-truth material Dice, Chamfer distance
+  (mm) and F-score at one voxel, with the material matching
+  (:mod:`kneas_method.evaluation.surfaces` documents the definitions).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from ..errors import KneasError
+from .common import console, run_cli
+from .export import _device, output_folder
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="kneas-eval", description="Re-evaluate a trained kneas run on its held-out views (SPEC §5 metrics).")
+    p.add_argument("run", metavar="RUN_DIR", nargs="?", default=None, help="run folder (or a checkpoint file of it)")
+    p.add_argument("--checkpoint", metavar="FILE", default=None, help="evaluate this checkpoint (its run's config.json is next to it or one folder up)")
+    p.add_argument("--scene", default=None, help="evaluate on this scene instead (built-in name or NAF pickle with the same volume box)")
+    p.add_argument("-o", "--output", metavar="DIR", default=None, help="output folder (default RUN_DIR/eval-<timestamp>/)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, or auto")
+    p.add_argument("--no-surfaces", action="store_true", help="skip the surface metrics (Chamfer, F-score); Dice is still computed")
+    p.add_argument("--grid-factor", type=int, default=2, help="surface grids at this multiple of the voxel resolution (default 2)")
+    p.add_argument("--air-threshold", type=float, default=0.5, help="total selector weight below which a point is air (default 0.5)")
+    p.add_argument("--figure-views", type=int, default=3, help="held-out views drawn as figures (default 3; 0 = none)")
+    p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
+    return p
+
+
+def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, air_threshold: float = 0.5):
+    """``(metrics dict, projections [N, nV, nU], volume [nx, ny, nz] or None)`` of a loaded run."""
+    from ..engine.evaluate import evaluate_model, evaluate_volume
+
+    if run.model is None:
+        metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True)
+    else:
+        metrics, (proj, vol) = evaluate_model(run.model, run.scene, run.config, device, return_arrays=True)
+    if run.model is not None and getattr(run.model, "has_sdf", False) and run.scene.labels is not None:
+        from ..evaluation.surfaces import material_metrics
+
+        metrics["materials"] = material_metrics(run.model, run.scene, factor=grid_factor, air_threshold=air_threshold,
+                                                surfaces=surfaces and run.scene.membership is not None)
+    elif run.scene.labels is not None:
+        metrics["materials_note"] = f"{run.config.method} has no signed distance fields, so no material labels or surfaces to score"
+    return metrics, proj, vol
+
+
+def _print(metrics: dict) -> None:
+    keys = [("psnr2d", "2D PSNR (dB, mean over held-out views)"), ("ssim2d", "2D SSIM"),
+            ("psnr3d", "3D PSNR (dB, exact units)"), ("ssim3d", "3D SSIM (exact units)"),
+            ("psnr3d_ls", "3D PSNR, least-squares scaled"), ("ssim3d_ls", "3D SSIM, least-squares scaled")]
+    for key, label in keys:
+        if key in metrics:
+            console.print(f"  {label:42s} {metrics[key]:.4f}")
+    mat = metrics.get("materials")
+    if mat:
+        match = ", ".join(f"{m['material']}->{m['gt_name']}" for m in mat["matching"])
+        console.print(f"  material matching (predicted -> ground truth): {match}")
+        for name, m in mat["materials"].items():
+            ch = "-" if m.get("chamfer_mm") is None else f"{m['chamfer_mm']:.3f} mm"
+            fs = "-" if m.get("fscore") is None else f"{m['fscore']:.3f}"
+            console.print(f"  {name:20s} Dice {m['dice']:.3f}   Chamfer {ch}   F@1voxel {fs}")
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+
+    def body() -> int:
+        from ..engine.loading import load_run
+        from ..engine.run_dir import timestamp, write_json
+
+        args = _parser().parse_args(argv)
+        target = args.checkpoint or args.run
+        if target is None:
+            raise KneasError("give a run folder (kneas-eval RUN_DIR) or a checkpoint (--checkpoint FILE)")
+        if args.checkpoint and args.run and Path(args.run).resolve() != Path(args.checkpoint).resolve().parent.parent \
+                and Path(args.run).resolve() != Path(args.checkpoint).resolve().parent:
+            raise KneasError(f"--checkpoint {args.checkpoint} is not inside run {args.run}; give only one of them")
+        if args.grid_factor < 1:
+            raise KneasError(f"--grid-factor must be a positive integer, got {args.grid_factor}")
+        device = _device(args.device)
+        run = load_run(target, scene=args.scene, device=device)
+        what = f"checkpoint {run.checkpoint_path} (step {run.step})" if run.checkpoint_path else "volume.npy"
+        console.print(f"evaluating {run.config.method} run {run.run_dir}: {what} on scene {run.scene.name} ({len(run.scene.val)} held-out views)")
+        for note in run.notes:
+            console.print(f"note: {note}")
+        out = output_folder(run.run_dir, args.output, f"eval-{timestamp()}")
+        t0 = time.perf_counter()
+        metrics, proj, vol = evaluate_run(run, device=device, surfaces=not args.no_surfaces, grid_factor=args.grid_factor,
+                                          air_threshold=args.air_threshold)
+        report = {
+            "method": run.config.method,
+            "run_dir": str(run.run_dir),
+            "checkpoint": str(run.checkpoint_path) if run.checkpoint_path else None,
+            "step": run.step,
+            "scene": run.scene.name,
+            "scene_source": run.scene.source,
+            "training_scene": run.config.scene,
+            "device": str(device),
+            **metrics,
+            "seconds": round(time.perf_counter() - t0, 2),
+        }
+        write_json(out / "metrics.json", report)
+        if not args.no_figures:
+            from ..export.figures import export_figures
+
+            export_figures(run, out / "figures", views=args.figure_views if args.figure_views > 0 else 0,
+                           projections=proj, volume=vol)
+        _print(metrics)
+        console.print(f"wrote {out / 'metrics.json'}" + ("" if args.no_figures else f" and figures in {out / 'figures'}"))
+        return 0
+
+    run_cli(body)

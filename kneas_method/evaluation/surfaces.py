@@ -1,0 +1,362 @@
+"""Material labels and surface metrics of a trained model against a built-in scene's
+exact ground truth (SPEC §5, last item).
+
+Definitions
+-----------
+**Grids.** A model is queried on a rectilinear grid of cell centres covering the
+scene's volume box: ``factor = 1`` is the scene's voxel grid
+(:meth:`Geometry.voxel_centres`), ``factor = f`` splits every voxel into
+``f^3`` cells (:func:`fine_geometry`). Queries run in chunks of ``chunk`` points,
+under ``torch.no_grad``; results are float32 numpy arrays.
+
+**Predicted material labels.** At each point the label is ``1 + argmax_k w_k``
+(the selector's largest weight, materials ``k = 0..K-1`` in ascending attenuation),
+or 0 (air) where the total weight ``Σ_k w_k`` is below ``air_threshold`` (0.5).
+
+**Matching predicted materials to ground-truth labels.** K (model) and M
+(ground truth) may differ, so each predicted material ``k`` is assigned to the
+ground-truth label ``m in 1..M`` whose attenuation level (data units; the
+phantom's levels, or the mean ground-truth image over each label) is nearest to
+the material's *mean predicted attenuation*: the mean of ``mu_materials[:, k]``
+over the voxels labelled ``k``, or, when no voxel is, over the voxels where
+``w_k`` is largest among materials, or else over all voxels. Several predicted
+materials may map to one ground-truth label (their regions are merged); a
+ground-truth label no material maps to gets Dice 0 and no predicted surface.
+The report also holds the overlap (Dice) matrix of every predicted material
+with every ground-truth label, so other matchings can be read off it.
+
+**Dice** per ground-truth label, on the scene's voxel grid: mapped predicted
+labels against ``scene.labels`` (the exact membership at voxel centres).
+
+**Surfaces**, points in mm in the scene's frame:
+
+* ground truth: marching cubes (level 0.5) on the exact membership mask
+  ``scene.membership(points) == m`` sampled on the fine grid (``factor``, default
+  2 = twice the voxel resolution), via :func:`metrics.surface_points_from_labels`;
+* prediction: marching cubes (level 0) on a signed field built from the SDFs
+  ``d_k`` sampled on the same fine grid. The region the model shows as material
+  ``k`` (sequential selector, hard limit: ``d_k < 0`` and not covered by a
+  higher material) is exactly ``e_k < 0`` with
+  ``e_k = max(d_k, max_{j > k} -d_j)`` (CSG intersection); for a ground-truth
+  label ``m`` the field is ``min`` of ``e_k`` over the materials matched to
+  ``m`` (union). Its zero level set is made of pieces of the zero sets of the
+  ``d_k``: the part of ``d_k``'s surface that is visible, plus the surfaces of
+  higher materials where they cut into ``k``. Using ``d_k``'s whole zero set
+  instead would score surfaces hidden inside higher materials, where the
+  projections do not constrain ``d_k`` at all.
+
+Both point sets are padded by an outside layer so surfaces touching the volume
+border close. Per label: Chamfer distance (symmetric and both directions, mm,
+:func:`metrics.chamfer_distance`) and F-score with precision/recall at one
+voxel (the smallest voxel side, mm; :func:`metrics.fscore`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import KneasError
+from .metrics import chamfer_distance, dice_per_label, fscore, surface_points_from_labels
+
+DEFAULT_AIR_THRESHOLD = 0.5
+DEFAULT_CHUNK = 65536
+
+
+# --------------------------------------------------------------------- grids
+def fine_geometry(geometry, factor: int = 1):
+    """The scene geometry with every voxel split into ``factor^3`` cells (same box)."""
+    factor = int(factor)
+    if factor < 1:
+        raise KneasError(f"grid factor must be a positive integer, got {factor}")
+    if factor == 1:
+        return geometry
+    return dataclasses.replace(
+        geometry,
+        n_voxel=tuple(n * factor for n in geometry.n_voxel),
+        d_voxel=tuple(d / factor for d in geometry.d_voxel),
+    )
+
+
+def grid_points(geometry, factor: int = 1, resolution: Optional[int] = None):
+    """``(geometry', axes)``: the grid geometry and its per-axis cell centres (model units).
+
+    ``resolution`` (if given) makes the longest axis that many cells, the others
+    in proportion (same box), instead of ``factor``.
+    """
+    if resolution is not None:
+        resolution = int(resolution)
+        if resolution < 2:
+            raise KneasError(f"--resolution must be at least 2, got {resolution}")
+        size = [n * d for n, d in zip(geometry.n_voxel, geometry.d_voxel)]
+        cell = max(size) / resolution
+        n = tuple(max(2, int(round(s / cell))) for s in size)
+        geo = dataclasses.replace(geometry, n_voxel=n, d_voxel=tuple(s / k for s, k in zip(size, n)))
+    else:
+        geo = fine_geometry(geometry, factor)
+    return geo, geo.voxel_axes(dtype=torch.float32)
+
+
+@torch.no_grad()
+def query_grid(model, geometry, *, keys: Sequence[str] = ("mu", "weights", "distances", "mu_materials"),
+               chunk: int = DEFAULT_CHUNK, device=None, dtype=np.float32) -> dict[str, np.ndarray]:
+    """Query ``model.query`` at every cell centre of ``geometry``'s voxel grid.
+
+    Args:
+        model: a CTModel (or anything with ``query(points [P, 3]) -> dict``).
+        geometry: grid geometry (e.g. from :func:`fine_geometry`).
+        keys: outputs to keep (missing ones, e.g. ``weights`` of a NAF model, are skipped).
+        chunk: points per query; memory is ``chunk`` x the model's activations plus
+            the outputs, ``nx·ny·nz·4`` bytes per scalar channel.
+
+    Returns:
+        ``{key: [nx, ny, nz] or [nx, ny, nz, K]}`` float32 (data units for ``mu``,
+        model units for ``distances``).
+    """
+    if device is None:
+        try:
+            device = next(model.parameters()).device
+        except (AttributeError, StopIteration):
+            device = torch.device("cpu")
+    xs, ys, zs = geometry.voxel_axes(dtype=torch.float32)
+    nx, ny, nz = len(xs), len(ys), len(zs)
+    out: dict[str, np.ndarray] = {}
+    plane = ny * nz
+    yz = torch.stack(torch.meshgrid(ys, zs, indexing="ij"), -1).reshape(-1, 2)  # [ny*nz, 2]
+    total = nx * plane
+    flat: dict[str, np.ndarray] = {}
+    start = 0
+    step = max(1, int(chunk))
+    while start < total:
+        stop = min(total, start + step)
+        idx = torch.arange(start, stop)
+        ix, r = idx // plane, idx % plane
+        pts = torch.cat([xs[ix, None], yz[r]], -1).to(device)
+        q = model.query(pts)
+        for k in keys:
+            v = q.get(k)
+            if v is None:
+                continue
+            v = v.detach().float().cpu().numpy()
+            if k not in flat:
+                flat[k] = np.empty((total,) + v.shape[1:], dtype=dtype)
+            flat[k][start:stop] = v
+        start = stop
+    for k, v in flat.items():
+        out[k] = v.reshape((nx, ny, nz) + v.shape[1:])
+    return out
+
+
+# ------------------------------------------------------------------- labels
+def labels_from_weights(weights, air_threshold: float = DEFAULT_AIR_THRESHOLD) -> np.ndarray:
+    """Material labels ``[...]`` uint8 from selector weights ``[..., K]``:
+    ``1 + argmax_k w_k``, or 0 (air) where ``Σ_k w_k < air_threshold``."""
+    w = np.asarray(weights)
+    lab = (np.argmax(w, axis=-1) + 1).astype(np.uint8)
+    lab[w.sum(-1) < air_threshold] = 0
+    return lab
+
+
+def gt_levels(scene) -> np.ndarray:
+    """Ground-truth attenuation per label 1..M (data units): the phantom's levels
+    for built-in scenes, else the mean of ``scene.image`` over each label."""
+    name = scene.meta.get("phantom") if isinstance(scene.meta, dict) else None
+    if isinstance(name, str):
+        try:
+            from ..data.phantoms import PHANTOM_NAMES, get_phantom
+
+            if name in PHANTOM_NAMES:
+                return np.asarray(get_phantom(name).levels, dtype=np.float64)
+        except ImportError:
+            pass
+    if scene.labels is None or scene.image is None:
+        raise KneasError(f"scene {scene.name!r} has no ground-truth labels; material metrics need a built-in scene")
+    M = int(scene.labels.max())
+    return np.array([float(scene.image[scene.labels == m].mean()) if (scene.labels == m).any() else np.nan for m in range(1, M + 1)])
+
+
+def material_mean_attenuation(mu_materials: np.ndarray, weights: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Mean predicted attenuation per material [K] (data units); see the module docs."""
+    K = mu_materials.shape[-1]
+    mm = mu_materials.reshape(-1, K)
+    lab = labels.reshape(-1)
+    top = np.argmax(weights.reshape(-1, K), -1)
+    out = np.empty(K)
+    for k in range(K):
+        for sel in (lab == k + 1, top == k, slice(None)):
+            vals = mm[sel, k]
+            if vals.size:
+                out[k] = float(vals.mean())
+                break
+    return out
+
+
+def match_materials(mean_mu: Sequence[float], levels: Sequence[float]) -> list[int]:
+    """Ground-truth label (1..M) for each predicted material: the nearest level."""
+    lv = np.asarray(levels, dtype=np.float64)
+    lv = np.where(np.isfinite(lv), lv, np.inf)
+    return [int(np.argmin(np.abs(lv - float(m)))) + 1 for m in mean_mu]
+
+
+def map_labels(pred_labels: np.ndarray, matching: Sequence[int]) -> np.ndarray:
+    """Predicted labels 0..K -> ground-truth labels 0..M through ``matching``."""
+    lut = np.concatenate([[0], np.asarray(matching, dtype=np.int64)]).astype(np.uint8)
+    return lut[pred_labels]
+
+
+def visible_fields(distances: np.ndarray) -> np.ndarray:
+    """``e_k = max(d_k, max_{j>k} -d_j)`` ``[..., K]``: negative exactly where material ``k``
+    is the visible one (hard limit of the sequential selector)."""
+    d = np.asarray(distances, dtype=np.float32)
+    e = d.copy()
+    cover = None  # max_{j>k} -d_j, built from the top
+    for k in range(d.shape[-1] - 1, -1, -1):
+        if cover is not None:
+            np.maximum(e[..., k], cover, out=e[..., k])
+            cover = np.maximum(cover, -d[..., k])
+        else:
+            cover = -d[..., k]
+    return e
+
+
+def _sdf_surface_points(field: np.ndarray, geometry) -> np.ndarray:
+    """Zero level set (marching cubes) of ``field`` [nx, ny, nz] on ``geometry``'s
+    grid, in mm; padded with an outside layer. ``[0, 3]`` when there is none."""
+    from skimage.measure import marching_cubes
+
+    f = np.asarray(field, dtype=np.float32)
+    if f.size == 0 or not float(f.min()) < 0.0:
+        return np.zeros((0, 3))
+    padded = np.pad(f, 1, constant_values=max(float(np.abs(f).max()), 1e-3))
+    spacing = tuple(float(d) * geometry.mm_per_unit for d in geometry.d_voxel)
+    verts, _f, _n, _v = marching_cubes(padded, level=0.0, spacing=spacing)
+    first = np.array([float(ax[0]) for ax in geometry.voxel_axes(dtype=torch.float64)]) * geometry.mm_per_unit
+    return verts.astype(np.float64) + (first - np.asarray(spacing))[None]
+
+
+def membership_grid(scene, geometry, chunk: int = 1_000_000) -> np.ndarray:
+    """Exact ground-truth labels [nx, ny, nz] uint8 at ``geometry``'s cell centres (model
+    units) from ``scene.membership``, in chunks."""
+    if scene.membership is None:
+        raise KneasError(f"scene {scene.name!r} has no exact membership function; surface metrics need a built-in scene")
+    xs, ys, zs = (a.numpy() for a in geometry.voxel_axes(dtype=torch.float64))
+    out = np.empty((len(xs), len(ys), len(zs)), dtype=np.uint8)
+    yy, zz = np.meshgrid(ys, zs, indexing="ij")
+    yz = np.stack([yy.reshape(-1), zz.reshape(-1)], -1)
+    rows = max(1, chunk // max(1, len(yz)))
+    for i0 in range(0, len(xs), rows):
+        xi = xs[i0 : i0 + rows]
+        pts = np.concatenate([np.repeat(xi, len(yz))[:, None], np.tile(yz, (len(xi), 1))], -1)
+        out[i0 : i0 + len(xi)] = np.asarray(scene.membership(pts)).reshape(len(xi), len(ys), len(zs))
+    return out
+
+
+def _dice_matrix(pred_labels: np.ndarray, gt_labels: np.ndarray, K: int, M: int) -> list[list[float]]:
+    rows = []
+    for k in range(1, K + 1):
+        a = pred_labels == k
+        row = []
+        for m in range(1, M + 1):
+            b = gt_labels == m
+            den = int(a.sum()) + int(b.sum())
+            row.append(1.0 if den == 0 else 2.0 * int(np.logical_and(a, b).sum()) / den)
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------ metrics
+def material_metrics(
+    model,
+    scene,
+    *,
+    factor: int = 2,
+    air_threshold: float = DEFAULT_AIR_THRESHOLD,
+    chunk: int = DEFAULT_CHUNK,
+    surfaces: bool = True,
+) -> dict[str, Any]:
+    """Per-material label Dice and surface errors of an SDF model (module docs).
+
+    Args:
+        model: CTModel with an SDF (``has_sdf``), or an object with ``query`` giving
+            ``weights``, ``distances``, ``mu_materials`` and ``num_materials``.
+        scene: built-in scene (``labels`` and ``membership`` present).
+        factor: fine-grid factor for the surfaces (2 = twice the voxel resolution).
+        air_threshold: total weight below which a point is air.
+        surfaces: also compute Chamfer/F-score (needs ``scene.membership``).
+
+    Returns:
+        JSON-able dict: ``matching`` (per predicted material: GT label, name, mean
+        predicted attenuation), ``gt_levels``, ``dice_matrix``, ``materials`` (per
+        GT material: ``dice``, ``chamfer_mm``, ``chamfer_pred_to_gt_mm``,
+        ``chamfer_gt_to_pred_mm``, ``fscore``, ``precision``, ``recall``), the
+        means ``dice_mean``, ``chamfer_mm_mean``, ``fscore_mean`` and the settings.
+    """
+    if not getattr(model, "has_sdf", True):
+        raise KneasError("material metrics need a model with signed distance fields; NAF/FDK volumes have no materials")
+    if scene.labels is None:
+        raise KneasError(f"scene {scene.name!r} has no ground-truth labels; material metrics need a built-in scene")
+    geo = scene.geometry
+    q = query_grid(model, geo, keys=("weights", "mu_materials"), chunk=chunk)
+    if "weights" not in q:
+        raise KneasError("the model's query gives no material weights; it has no materials")
+    pred = labels_from_weights(q["weights"], air_threshold)
+    K = q["weights"].shape[-1]
+    levels = gt_levels(scene)
+    M = len(levels)
+    names = list(scene.materials) if len(scene.materials) == M else [f"label {m}" for m in range(1, M + 1)]
+    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], pred)
+    matching = match_materials(mean_mu, levels)
+    mapped = map_labels(pred, matching)
+    gt = np.asarray(scene.labels)
+    dices = dice_per_label(mapped, gt, labels=list(range(1, M + 1)))
+    voxel_mm = float(min(geo.d_voxel)) * geo.mm_per_unit
+    per: dict[str, dict] = {}
+    for m in range(1, M + 1):
+        per[names[m - 1]] = {"label": m, "level": float(levels[m - 1]), "dice": float(dices[m]),
+                             "predicted_materials": [k + 1 for k in range(K) if matching[k] == m]}
+    result: dict[str, Any] = {
+        "definition": "labels: 1+argmax weight, air where total weight < air_threshold; predicted material k -> GT label with the "
+                      "nearest attenuation level to its mean predicted attenuation; surfaces: visible-region SDF e_k = "
+                      "max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm",
+        "air_threshold": float(air_threshold),
+        "grid_factor": int(factor),
+        "fscore_threshold_mm": voxel_mm,
+        "gt_levels": [float(v) for v in levels],
+        "matching": [{"material": k + 1, "mean_mu": float(mean_mu[k]), "gt_label": int(matching[k]),
+                      "gt_name": names[matching[k] - 1]} for k in range(K)],
+        "dice_matrix": _dice_matrix(pred, gt, K, M),
+        "materials": per,
+    }
+    del q
+    if surfaces:
+        fgeo = fine_geometry(geo, factor)
+        d = query_grid(model, fgeo, keys=("distances",), chunk=chunk)["distances"]
+        e = visible_fields(d)
+        del d
+        gt_fine = membership_grid(scene, fgeo)
+        for m in range(1, M + 1):
+            entry = per[names[m - 1]]
+            ks = [k for k in range(K) if matching[k] == m]
+            gt_pts = surface_points_from_labels(gt_fine == m, fgeo)
+            pred_pts = _sdf_surface_points(np.min(e[..., ks], axis=-1), fgeo) if ks else np.zeros((0, 3))
+            entry["gt_surface_points"] = int(len(gt_pts))
+            entry["pred_surface_points"] = int(len(pred_pts))
+            if len(gt_pts) == 0 or len(pred_pts) == 0:
+                entry.update(chamfer_mm=None, chamfer_pred_to_gt_mm=None, chamfer_gt_to_pred_mm=None,
+                             fscore=0.0 if len(gt_pts) else None, precision=None, recall=None,
+                             note="no predicted surface" if len(gt_pts) else "material absent from the ground truth")
+                continue
+            c, ab, ba = chamfer_distance(pred_pts, gt_pts)
+            f, p, r = fscore(pred_pts, gt_pts, voxel_mm, return_pr=True)
+            entry.update(chamfer_mm=c, chamfer_pred_to_gt_mm=ab, chamfer_gt_to_pred_mm=ba, fscore=f, precision=p, recall=r)
+    vals = list(per.values())
+    result["dice_mean"] = float(np.mean([v["dice"] for v in vals]))
+    ch = [v["chamfer_mm"] for v in vals if v.get("chamfer_mm") is not None]
+    fs = [v["fscore"] for v in vals if v.get("fscore") is not None]
+    if surfaces:
+        result["chamfer_mm_mean"] = float(np.mean(ch)) if ch else None
+        result["fscore_mean"] = float(np.mean(fs)) if fs else None
+    return result

@@ -1,0 +1,360 @@
+"""Surface meshes of a trained run (``kneas-export mesh``), written with open3d.
+
+What is extracted
+-----------------
+* SDF methods (``neas-*``, ``kselector*``, ``k-neas``): one surface per material,
+  the zero level set of ``d_k`` (``surface="raw"``, default: the model's whole
+  surface of material ``k``, e.g. the skin for soft tissue) or of the visible
+  region ``e_k = max(d_k, max_{j>k} -d_j)`` (``surface="visible"``: where the
+  selector shows material ``k``; see :mod:`kneas_method.evaluation.surfaces`).
+* Methods with no SDF (``naf``, ``fdk``): iso-surfaces of the attenuation
+  ``mu = threshold`` for each threshold (data units); the default threshold is
+  Otsu's on the attenuation grid, and the report says it was thresholded.
+
+How
+---
+The field is sampled at the cell centres of a grid covering the scene's volume
+box, ``resolution`` cells along its longest side (default 256), the others in
+proportion. It is queried in chunks of ``chunk`` points, so the network's
+activations stay bounded whatever the resolution; the sampled field is kept as
+one float32 array, ``nx·ny·nz·4`` bytes per material (67 MB per material at
+256^3). The grid is padded with one outside layer so surfaces touching the
+volume border close.
+
+Iso-surfaces come from open3d's ``open3d.t.geometry.TriangleMesh.create_isosurfaces``
+(flying edges, the tensor API; open3d >= 0.18) when present, else from
+``skimage.measure.marching_cubes``; either way the result is an
+``open3d.geometry.TriangleMesh`` whose vertices are converted to **mm** in the
+scene's physical frame (``geometry.voxel_centres`` x ``mm_per_unit``). Vertices
+closer than 1e-3 of a cell are merged and zero-area triangles removed (marching
+cubes makes both where the field vanishes at a grid point), triangles are
+oriented outwards, and connected components (``cluster_connected_triangles``)
+smaller than ``min_fragment`` are dropped: a count of triangles when >= 1, a
+fraction of the mesh's triangles when < 1.
+
+open3d is imported only here (``pip install 'kneas[mesh]'``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..errors import KneasError, missing_optional
+
+FORMATS = ("ply", "obj", "stl", "glb")
+DEFAULT_RESOLUTION = 256
+DEFAULT_MIN_FRAGMENT = 64.0
+SURFACES = ("raw", "visible")
+
+
+def import_open3d():
+    """open3d, or a one-line KneasError with the install hint."""
+    try:
+        import open3d as o3d
+    except ImportError:
+        raise missing_optional("open3d", "mesh", "mesh export") from None
+    except OSError as exc:  # e.g. libusb-1.0 missing
+        raise KneasError(f"open3d is installed but cannot load ({exc}); on Debian/Ubuntu install its system library with: apt-get install libusb-1.0-0") from None
+    return o3d
+
+
+def material_colors(n: int) -> np.ndarray:
+    """``[n, 3]`` RGB in [0, 1], one distinct colour per material (tab10)."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab10"]
+    return np.array([cmap(i % 10)[:3] for i in range(n)], dtype=np.float64)
+
+
+@dataclass
+class MeshInfo:
+    """One exported surface."""
+
+    name: str
+    path: Optional[Path]
+    vertices: int
+    triangles: int
+    watertight: bool
+    components: int
+    dropped_components: int
+    dropped_triangles: int
+    source: str
+    level: Optional[float] = None
+    note: str = ""
+    watertight_check: str = ""
+
+    def to_dict(self) -> dict:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class MeshExport:
+    meshes: list[MeshInfo] = field(default_factory=list)
+    combined: Optional[MeshInfo] = None
+    resolution: tuple[int, int, int] = (0, 0, 0)
+    cell_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    kind: str = "sdf"
+    thresholds: Optional[list[float]] = None
+    extractor: str = ""
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {
+            "kind": self.kind, "resolution": list(self.resolution), "cell_mm": list(self.cell_mm),
+            "thresholds_data_units": self.thresholds, "extractor": self.extractor,
+            "meshes": [m.to_dict() for m in self.meshes],
+            "combined": self.combined.to_dict() if self.combined else None, "notes": self.notes,
+        }
+
+
+# ------------------------------------------------------------------ extraction
+def isosurface(field: np.ndarray, grid_geometry, level: float = 0.0, *, inside_negative: bool = True):
+    """Iso-surface ``field == level`` of ``field [nx, ny, nz]`` sampled at ``grid_geometry``'s
+    cell centres, as an ``open3d.geometry.TriangleMesh`` with vertices in mm.
+
+    ``inside_negative``: the solid is where ``field < level`` (SDFs); else where
+    ``field > level`` (attenuation). Triangles face outwards. Returns
+    ``(mesh or None, extractor name)``; None when the field never crosses ``level``.
+    """
+    import torch
+
+    o3d = import_open3d()
+    f = np.asarray(field, dtype=np.float32) - np.float32(level)
+    if not inside_negative:
+        f = -f
+    if f.size == 0 or not float(f.min()) < 0.0:
+        return None, ""
+    pad = max(float(np.abs(f).max()), 1e-6)
+    f = np.pad(f, 1, constant_values=pad)
+    if hasattr(o3d.t.geometry.TriangleMesh, "create_isosurfaces"):
+        # open3d indexes the volume as [z, y, x] -> vertex (x, y, z): pass it transposed.
+        tm = o3d.t.geometry.TriangleMesh.create_isosurfaces(o3d.core.Tensor(np.ascontiguousarray(f.transpose(2, 1, 0))), [0.0])
+        verts = tm.vertex.positions.numpy().astype(np.float64) if "positions" in tm.vertex else np.zeros((0, 3))
+        faces = tm.triangle.indices.numpy().astype(np.int64) if "indices" in tm.triangle else np.zeros((0, 3), np.int64)
+        extractor = "open3d.t.geometry.TriangleMesh.create_isosurfaces"
+    else:  # older open3d
+        from skimage.measure import marching_cubes
+
+        verts, faces, _n, _v = marching_cubes(f, level=0.0)
+        verts = verts.astype(np.float64)
+        faces = faces.astype(np.int64)
+        extractor = "skimage.measure.marching_cubes"
+    if len(faces) == 0:
+        return None, extractor
+    spacing_mm = np.array([float(d) * grid_geometry.mm_per_unit for d in grid_geometry.d_voxel])
+    first_mm = np.array([float(ax[0]) for ax in grid_geometry.voxel_axes(dtype=torch.float64)]) * grid_geometry.mm_per_unit
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector((verts - 1.0) * spacing_mm + first_mm),
+                                     o3d.utility.Vector3iVector(faces.astype(np.int32)))
+    mesh.merge_close_vertices(1e-3 * float(spacing_mm.min()))
+    mesh.remove_degenerate_triangles()
+    mesh.remove_duplicated_triangles()
+    mesh.remove_unreferenced_vertices()
+    _orient_outwards(mesh, f, grid_geometry, spacing_mm, first_mm)
+    return mesh, extractor
+
+
+def _orient_outwards(mesh, padded_field: np.ndarray, grid_geometry, spacing_mm, first_mm) -> None:
+    """Flip all triangles if their normals point into the solid (field < 0 inside)."""
+    tri = np.asarray(mesh.triangles)
+    if len(tri) == 0:
+        return
+    v = np.asarray(mesh.vertices)
+    a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    n = np.cross(b - a, c - a)
+    centre = (a + b + c) / 3.0
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    ok = norm[:, 0] > 0
+    if not ok.any():
+        return
+    probe = centre[ok] + 0.5 * float(spacing_mm.min()) * n[ok] / norm[ok]
+    idx = np.rint((probe - first_mm) / spacing_mm + 1.0).astype(np.int64)
+    idx = np.clip(idx, 0, np.array(padded_field.shape) - 1)
+    vals = padded_field[idx[:, 0], idx[:, 1], idx[:, 2]]
+    if np.mean(vals < 0) > 0.5:  # the normals point inside
+        mesh.triangles = type(mesh.triangles)(tri[:, [0, 2, 1]].astype(np.int32))
+
+
+def drop_fragments(mesh, min_fragment: float = DEFAULT_MIN_FRAGMENT) -> tuple[int, int, int]:
+    """Remove connected components smaller than ``min_fragment`` (triangles if >= 1,
+    fraction of all triangles if < 1). Returns ``(components, dropped components, dropped triangles)``."""
+    n = len(mesh.triangles)
+    if n == 0:
+        return 0, 0, 0
+    cluster, counts, _area = mesh.cluster_connected_triangles()
+    cluster, counts = np.asarray(cluster), np.asarray(counts)
+    limit = float(min_fragment) * n if 0 < min_fragment < 1 else float(min_fragment)
+    small = counts < limit
+    if small.all():  # never drop everything: keep the largest piece
+        small[int(np.argmax(counts))] = False
+    if small.any():
+        mesh.remove_triangles_by_mask(small[cluster])
+        mesh.remove_unreferenced_vertices()
+    return int(len(counts)), int(small.sum()), int(counts[small].sum())
+
+
+SELF_INTERSECTION_LIMIT = 20000
+
+
+def check_watertight(mesh, limit: int = SELF_INTERSECTION_LIMIT) -> tuple[bool, str]:
+    """``(watertight, how)``. Up to ``limit`` triangles: open3d's ``is_watertight()``
+    (closed edge- and vertex-manifold, no self-intersection). Above it, open3d's
+    self-intersection test (quadratic in the triangle count: ~10 s at 40k triangles)
+    is skipped and the mesh is called watertight when it is a closed edge- and
+    vertex-manifold, which is what marching-cubes output (never self-intersecting
+    by construction) needs."""
+    if len(mesh.triangles) <= limit:
+        return bool(mesh.is_watertight()), "is_watertight()"
+    closed = bool(mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_vertex_manifold())
+    return closed, f"closed manifold (self-intersection test skipped above {limit} triangles)"
+
+
+def write_mesh(mesh, path: Path) -> Path:
+    """Write ``mesh`` (PLY, OBJ, STL or GLB by suffix); KneasError when open3d fails."""
+    o3d = import_open3d()
+    mesh.compute_vertex_normals()
+    mesh.compute_triangle_normals()
+    path = Path(path)
+    if path.suffix.lower() == ".glb":
+        # open3d 0.20's legacy writer puts the buffer in a data URI, which makes an
+        # invalid .glb (its own reader refuses it); the tensor-API writer is correct.
+        ok = o3d.t.io.write_triangle_mesh(str(path), o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    else:
+        ok = o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False)
+    if not ok or not path.is_file():
+        raise KneasError(f"open3d could not write {path}; check the folder is writable or choose another --format")
+    return path
+
+
+# --------------------------------------------------------------------- fields
+def sample_fields(run, resolution: int = DEFAULT_RESOLUTION, *, surface: str = "raw", chunk: int = 65536):
+    """The scalar fields to contour on the export grid.
+
+    Returns ``(grid_geometry, fields [nx, ny, nz, C] float32, kind)``: ``kind`` is
+    ``"sdf"`` (C = K distance fields, model units) or ``"attenuation"`` (C = 1, data units).
+    """
+    from ..evaluation.surfaces import grid_points, query_grid, visible_fields
+
+    if surface not in SURFACES:
+        raise KneasError(f"--surface {surface!r} is unknown; choose one of {', '.join(SURFACES)}")
+    geo = run.scene.geometry
+    if run.model is None:  # FDK: the volume on the scene grid
+        vol = np.asarray(run.volume, dtype=np.float32)
+        if resolution is not None and max(vol.shape) != int(resolution):
+            from scipy.ndimage import zoom
+
+            grid, _ = grid_points(geo, resolution=resolution)
+            vol = zoom(vol, [n / s for n, s in zip(grid.n_voxel, vol.shape)], order=1).astype(np.float32)
+            vol = vol[: grid.n_voxel[0], : grid.n_voxel[1], : grid.n_voxel[2]]
+            if vol.shape != tuple(grid.n_voxel):
+                vol = np.pad(vol, [(0, n - s) for n, s in zip(grid.n_voxel, vol.shape)], mode="edge")
+            return grid, vol[..., None], "attenuation"
+        return geo, vol[..., None], "attenuation"
+    grid, _ = grid_points(geo, resolution=resolution)
+    if getattr(run.model, "has_sdf", False):
+        d = query_grid(run.model, grid, keys=("distances",), chunk=chunk)["distances"]
+        return grid, (visible_fields(d) if surface == "visible" else d), "sdf"
+    mu = query_grid(run.model, grid, keys=("mu",), chunk=chunk)["mu"]
+    return grid, mu[..., None], "attenuation"
+
+
+def default_threshold(mu: np.ndarray) -> float:
+    """Otsu's threshold of the attenuation grid (data units)."""
+    from skimage.filters import threshold_otsu
+
+    v = np.asarray(mu, dtype=np.float64)
+    lo, hi = float(v.min()), float(v.max())
+    if not hi > lo:
+        raise KneasError("the reconstructed attenuation is constant, so there is no surface to threshold; check the run")
+    try:
+        return float(threshold_otsu(v))
+    except ValueError:  # range too narrow for a 256-bin histogram: take the midpoint
+        return 0.5 * (lo + hi)
+
+
+# ---------------------------------------------------------------------- export
+def export_meshes(
+    run,
+    out_dir,
+    *,
+    resolution: int = DEFAULT_RESOLUTION,
+    fmt: str = "ply",
+    min_fragment: float = DEFAULT_MIN_FRAGMENT,
+    thresholds: Optional[Sequence[float]] = None,
+    surface: str = "raw",
+    chunk: int = 65536,
+) -> MeshExport:
+    """Extract and write one mesh per material (or threshold) plus a combined mesh
+    coloured by material, into ``out_dir``. See the module docs.
+
+    Returns a :class:`MeshExport` with the counts and watertightness per mesh
+    (also written as ``meshes.json`` by the CLI).
+    """
+    o3d = import_open3d()
+    fmt = fmt.lower().lstrip(".")
+    if fmt not in FORMATS:
+        raise KneasError(f"--format {fmt!r} is not supported; choose one of {', '.join(FORMATS)}")
+    if not min_fragment >= 0:
+        raise KneasError(f"--min-fragment must be >= 0 (triangles, or a fraction < 1), got {min_fragment}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    grid, fields, kind = sample_fields(run, resolution, surface=surface, chunk=chunk)
+    mm = grid.mm_per_unit
+    result = MeshExport(resolution=tuple(grid.n_voxel), cell_mm=tuple(float(d) * mm for d in grid.d_voxel), kind=kind)
+    jobs = []  # (name, field, level, inside_negative, source)
+    if kind == "sdf":
+        K = fields.shape[-1]
+        names = _material_names(run, K)
+        for k in range(K):
+            what = "d_%d = 0" % (k + 1) if surface == "raw" else "visible region of material %d" % (k + 1)
+            jobs.append((names[k], fields[..., k], 0.0, True, what))
+    else:
+        mu = fields[..., 0]
+        if thresholds is None or len(thresholds) == 0:
+            thresholds = [default_threshold(mu)]
+            result.notes.append(f"{run.config.method} has no signed distance field: thresholded the attenuation at "
+                                f"{thresholds[0]:.4g} (data units, Otsu); choose with --threshold")
+        else:
+            result.notes.append(f"{run.config.method} has no signed distance field: thresholded the attenuation at "
+                                f"{', '.join(f'{t:.4g}' for t in thresholds)} (data units)")
+        result.thresholds = [float(t) for t in thresholds]
+        for i, t in enumerate(sorted(float(t) for t in thresholds)):
+            jobs.append((f"threshold-{i + 1}", mu, t, False, f"mu = {t:.6g} (data units)"))
+    colors = material_colors(len(jobs))
+    combined = o3d.geometry.TriangleMesh()
+    for i, (name, f, level, inside_negative, source) in enumerate(jobs):
+        mesh, extractor = isosurface(f, grid, level, inside_negative=inside_negative)
+        result.extractor = result.extractor or extractor
+        stem = _slug(name)
+        if mesh is None or len(mesh.triangles) == 0:
+            result.meshes.append(MeshInfo(name, None, 0, 0, False, 0, 0, 0, source, level,
+                                          note="no surface in the volume (the field never crosses the level); no file written"))
+            continue
+        comps, dropped, dropped_tri = drop_fragments(mesh, min_fragment)
+        mesh.paint_uniform_color(colors[i])
+        path = write_mesh(mesh, out / f"{stem}.{fmt}")
+        tight, how = check_watertight(mesh)
+        result.meshes.append(MeshInfo(name, path, len(mesh.vertices), len(mesh.triangles), tight,
+                                      comps, dropped, dropped_tri, source, level, watertight_check=how))
+        combined += mesh
+    if len(combined.triangles):
+        path = write_mesh(combined, out / f"combined.{fmt}")
+        # the union of closed surfaces is closed; nested materials touch, so no self-intersection test here
+        tight = all(m.watertight for m in result.meshes if m.path is not None)
+        result.combined = MeshInfo("combined", path, len(combined.vertices), len(combined.triangles), tight,
+                                   sum(m.components - m.dropped_components for m in result.meshes), 0, 0,
+                                   "all meshes, coloured by material", watertight_check="every part watertight")
+    else:
+        result.notes.append("no surface found in the volume, so no file was written")
+    return result
+
+
+def _material_names(run, K: int) -> list[str]:
+    return [f"material {k + 1}" for k in range(K)]
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "-" for c in name.strip().lower()).strip("-") or "mesh"

@@ -1,0 +1,143 @@
+"""Reconstructed volumes of a run (``kneas-export volume``): NIfTI and ``.npy``.
+
+Files written (``out_dir``):
+
+* ``attenuation.nii.gz`` / ``attenuation.npy``: float32 ``[nx, ny, nz]``, the
+  attenuation in **data units** (1/m; NAF scenes: the normalised [0, 1] scale) at
+  the scene's voxel centres (``model.query(...)["mu"]``, or an FDK run's volume).
+* ``labels.nii.gz`` / ``labels.npy``: uint8 ``[nx, ny, nz]`` material labels:
+  SDF methods ``1 + argmax_k w_k`` with 0 (air) where ``Σ_k w_k < 0.5`` (labels
+  1..K = the model's materials in ascending attenuation); methods without an SDF
+  only with ``thresholds`` (label = number of thresholds the attenuation exceeds).
+* ``volume.json``: shape, voxel size and origin (mm), the affine, units, the
+  axis convention.
+
+Axis convention / affine
+------------------------
+Array index ``image[a, b, c]`` is the voxel centred at ``(x_a, y_b, z_c)`` of
+:meth:`Geometry.voxel_centres` (SPEC §1), in mm. The NIfTI affine (sform and
+qform, code 1 "scanner", units mm) is therefore::
+
+    [[dx, 0,  0,  x_0],
+     [0,  dy, 0,  y_0],
+     [0,  0,  dz, z_0],
+     [0,  0,  0,  1  ]]
+
+with ``(dx, dy, dz)`` the voxel size in mm and ``(x_0, y_0, z_0)`` the first
+voxel centre in mm (``offOrigin`` included). NIfTI's world frame is RAS+; kneas
+identifies the scanner's x, y, z (z = rotation axis) with R, A, S, with no
+flips, so 3D Slicer and ITK-SNAP place the volume, the meshes of
+``kneas-export mesh`` (same mm frame) and the ground truth at the same
+positions. The scanner frame carries no anatomical orientation: Slicer's
+R/A/S labels are the scanner's x/y/z axes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import KneasError
+
+NIFTI_UNITS = "mm"
+
+
+def volume_affine(geometry) -> np.ndarray:
+    """The ``[4, 4]`` voxel-index -> mm affine of ``geometry``'s voxel grid (module docs)."""
+    mm = geometry.mm_per_unit
+    first = [float(ax[0]) * mm for ax in geometry.voxel_axes(dtype=torch.float64)]
+    aff = np.eye(4)
+    for i in range(3):
+        aff[i, i] = float(geometry.d_voxel[i]) * mm
+        aff[i, 3] = first[i]
+    return aff
+
+
+def reconstruct(run, *, chunk: int = 65536) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+    """``(mu [nx, ny, nz] data units, weights [nx, ny, nz, K] or None, mu_materials or None)``
+    of a loaded run at its scene's voxel centres."""
+    if run.model is None:
+        return np.asarray(run.volume, dtype=np.float32), None, None
+    from ..evaluation.surfaces import query_grid
+
+    q = query_grid(run.model, run.scene.geometry, keys=("mu", "weights", "mu_materials"), chunk=chunk)
+    return q["mu"], q.get("weights"), q.get("mu_materials")
+
+
+def label_volume(mu: np.ndarray, weights: Optional[np.ndarray], thresholds: Optional[Sequence[float]] = None,
+                 air_threshold: float = 0.5) -> Optional[np.ndarray]:
+    """Material labels (uint8) from weights, or from attenuation thresholds (data units); None if neither."""
+    from ..evaluation.surfaces import labels_from_weights
+
+    if weights is not None:
+        return labels_from_weights(weights, air_threshold)
+    if thresholds:
+        t = np.sort(np.asarray(thresholds, dtype=np.float64))
+        return np.searchsorted(t, np.asarray(mu, dtype=np.float64), side="right").astype(np.uint8)
+    return None
+
+
+def write_nifti(array: np.ndarray, affine: np.ndarray, path: Path, *, description: str = "") -> Path:
+    """Write ``array`` as NIfTI-1 with ``affine`` (sform and qform code 1, units mm)."""
+    try:
+        import nibabel as nib
+    except ImportError:
+        raise KneasError("writing NIfTI volumes needs the optional package 'nibabel', which is not installed; "
+                         "install it with: pip install 'kneas[nifti]'") from None
+    img = nib.Nifti1Image(np.asarray(array), affine)
+    img.header.set_xyzt_units(xyz=NIFTI_UNITS)
+    img.set_sform(affine, code=1)
+    img.set_qform(affine, code=1)
+    if description:
+        img.header["descrip"] = description[:79].encode()
+    nib.save(img, str(path))
+    return Path(path)
+
+
+def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None, nifti: bool = True,
+                  chunk: int = 65536, air_threshold: float = 0.5) -> dict:
+    """Write the attenuation and label volumes (NIfTI + ``.npy``) and ``volume.json``.
+
+    Returns the ``volume.json`` dict (paths, shape, voxel size, origin, affine, notes).
+    """
+    from ..engine.run_dir import write_json
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    geo = run.scene.geometry
+    mu, weights, _ = reconstruct(run, chunk=chunk)
+    labels = label_volume(mu, weights, thresholds, air_threshold)
+    aff = volume_affine(geo)
+    info: dict = {
+        "method": run.config.method,
+        "scene": run.scene.name,
+        "shape": list(mu.shape),
+        "voxel_mm": [float(aff[i, i]) for i in range(3)],
+        "origin_mm": [float(aff[i, 3]) for i in range(3)],
+        "affine": aff.tolist(),
+        "axes": "image[a, b, c] at (x_a, y_b, z_c) mm, scanner x/y/z = NIfTI R/A/S (z = rotation axis)",
+        "attenuation_units": "data units (1/m; NAF normalised scale)",
+        "files": {},
+        "notes": [],
+    }
+    np.save(out / "attenuation.npy", mu.astype(np.float32))
+    info["files"]["attenuation_npy"] = str(out / "attenuation.npy")
+    if labels is not None:
+        np.save(out / "labels.npy", labels)
+        info["files"]["labels_npy"] = str(out / "labels.npy")
+        info["labels"] = ("1 + argmax of the selector weights (materials in ascending attenuation), 0 = air where the "
+                          f"total weight < {air_threshold}") if weights is not None else \
+            f"number of thresholds {sorted(float(t) for t in thresholds)} (data units) the attenuation exceeds"
+    else:
+        info["notes"].append(f"{run.config.method} has no materials: no label volume (give --threshold to make one)")
+    if nifti:
+        write_nifti(mu.astype(np.float32), aff, out / "attenuation.nii.gz", description=f"kneas {run.config.method} mu data units")
+        info["files"]["attenuation_nifti"] = str(out / "attenuation.nii.gz")
+        if labels is not None:
+            write_nifti(labels, aff, out / "labels.nii.gz", description=f"kneas {run.config.method} material labels")
+            info["files"]["labels_nifti"] = str(out / "labels.nii.gz")
+    write_json(out / "volume.json", info)
+    return info

@@ -1,0 +1,65 @@
+"""`kneas-eval` on hand-written tiny run folders (a tiny built-in foot scene with exact membership)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from kneas_method.cli import eval as eval_cli
+from test_export_support import foot_scene_file, write_run
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evalruns")
+    return write_run(root, "k-neas", foot_scene_file(root), num_materials=2)
+
+
+def _cli(argv):
+    with pytest.raises(SystemExit) as exc:
+        eval_cli.main(argv)
+    return exc.value.code
+
+
+def test_eval_writes_metrics_and_figures(run_dir, capsys):
+    assert _cli([str(run_dir), "--figure-views", "1"]) == 0
+    text = capsys.readouterr().out
+    outs = sorted(run_dir.glob("eval-*"))
+    assert len(outs) == 1
+    m = json.loads((outs[0] / "metrics.json").read_text())
+    assert m["method"] == "k-neas" and m["step"] == 7 and m["scene"] == "foot_tiny"
+    # 2D over all held-out views, 3D exact and least-squares variants
+    assert m["n_views"] == 3 and len(m["psnr2d_per_view"]) == 3 and len(m["ssim2d_per_view"]) == 3
+    for key in ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_ls", "ssim3d_ls", "ls_scale"):
+        assert isinstance(m[key], float)
+    assert m["psnr2d"] == pytest.approx(np.mean(m["psnr2d_per_view"]))
+    # per-material surface and label metrics; K = 2 model, M = 3 ground-truth materials
+    mat = m["materials"]
+    assert len(mat["matching"]) == 2 and set(mat["materials"]) == {"soft tissue", "marrow", "cortical bone"}
+    assert np.array(mat["dice_matrix"]).shape == (2, 3)
+    for entry in mat["materials"].values():
+        assert 0.0 <= entry["dice"] <= 1.0
+        if entry["predicted_materials"] and entry["pred_surface_points"]:
+            assert entry["chamfer_mm"] >= 0 and 0 <= entry["fscore"] <= 1
+    assert "material matching" in text and "2D PSNR" in text
+    figs = sorted(p.name for p in (outs[0] / "figures").glob("*.png"))
+    assert "slices.png" in figs and "weights.png" in figs and any(f.startswith("projection-") for f in figs)
+
+
+def test_eval_checkpoint_and_output(run_dir, tmp_path):
+    ckpt = next((run_dir / "checkpoints").glob("*.ckpt"))
+    out = tmp_path / "e"
+    assert _cli(["--checkpoint", str(ckpt), "-o", str(out), "--no-figures", "--no-surfaces"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["checkpoint"] == str(ckpt)
+    assert all(e.get("chamfer_mm") is None for e in m["materials"]["materials"].values())
+    assert not (out / "figures").exists()
+
+
+def test_eval_user_errors(tmp_path, capsys):
+    assert _cli([]) == 2
+    assert "give a run folder" in capsys.readouterr().err
+    (tmp_path / "run").mkdir()
+    assert _cli([str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "config.json" in err and "--resume" in err

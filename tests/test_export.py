@@ -1,0 +1,239 @@
+"""Run loading and `kneas-export` (mesh, volume, figures) on hand-written tiny run folders."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from kneas_method.cli import export as export_cli
+from kneas_method.engine.loading import convert_hash_tables, load_run
+from kneas_method.errors import KneasError
+from kneas_method.export.volume import volume_affine
+from test_export_support import sphere_scene_file, write_fdk_run, write_run
+
+o3d = pytest.importorskip("open3d")  # CI installs it (.ci/run: .[dev,mesh,nifti] + libusb)
+nib = pytest.importorskip("nibabel")
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    scene_path = sphere_scene_file(root)
+    return {"root": root, "scene": scene_path, "kneas": write_run(root / "a", "k-neas", scene_path, num_materials=2)}
+
+
+def _cli(argv):
+    with pytest.raises(SystemExit) as exc:
+        export_cli.main(argv)
+    return exc.value.code
+
+
+# ------------------------------------------------------------------ loading
+def test_load_run_and_moved_checkpoint(files, tmp_path):
+    run = load_run(files["kneas"])
+    assert run.model is not None and run.model.num_materials == 2 and run.step == 7 and not run.model.training
+    assert run.config.method == "k-neas" and run.scene.name == "spheres_tiny"
+    assert next(run.model.parameters()).device.type == "cpu"
+    # a checkpoint moved to another machine: config.json next to the .ckpt, no checkpoints/ folder
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    shutil.copy(files["kneas"] / "config.json", moved)
+    ckpt = next((files["kneas"] / "checkpoints").glob("step-*.ckpt"))
+    shutil.copy(ckpt, moved / ckpt.name)
+    again = load_run(moved / ckpt.name)
+    assert again.checkpoint_path == moved / ckpt.name
+    pts = torch.rand(20, 3) - 0.5
+    assert torch.allclose(again.model.query(pts)["mu"], run.model.query(pts)["mu"])
+
+
+def test_incomplete_runs_name_what_is_missing(files, tmp_path):
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    with pytest.raises(KneasError, match=r"no config\.json.*kneas-train --resume"):
+        load_run(bare)
+    shutil.copy(files["kneas"] / "config.json", bare)
+    with pytest.raises(KneasError, match=r"no checkpoint.*kneas-train --resume"):
+        load_run(bare)
+    fdk = tmp_path / "fdk"
+    fdk.mkdir()
+    cfg = json.loads((files["kneas"] / "config.json").read_text())
+    cfg["method"] = "fdk"
+    (fdk / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(KneasError, match=r"no volume\.npy.*kneas-train --resume"):
+        load_run(fdk)
+    with pytest.raises(KneasError, match="does not exist"):
+        load_run(tmp_path / "nowhere")
+
+
+def test_tcnn_tables_convert_to_torch(files):
+    run = load_run(files["kneas"])
+    state = run.model.state_dict()
+    key = next(k for k in state if k.endswith("encoding.table"))
+    tcnn_state = {(k[: -len("table")] + "encoding.params" if k == key else k): (v.reshape(-1) if k == key else v) for k, v in state.items()}
+    back = convert_hash_tables(tcnn_state, run.model)
+    assert set(back) == set(state) and torch.equal(back[key], state[key])
+
+
+# -------------------------------------------------------------------- meshes
+def test_mesh_export_kneas(files, tmp_path, capsys):
+    out = tmp_path / "mesh"
+    assert _cli(["mesh", str(files["kneas"]), "-o", str(out), "--resolution", "40"]) == 0
+    text = capsys.readouterr().out
+    info = json.loads((out / "meshes.json").read_text())
+    assert info["kind"] == "sdf" and len(info["meshes"]) == 2 and info["combined"] is not None
+    run = load_run(files["kneas"])
+    g = run.scene.geometry
+    half_mm = np.array(g.volume_half_size) * g.mm_per_unit
+    total = 0
+    for m in info["meshes"] + [info["combined"]]:
+        mesh = o3d.io.read_triangle_mesh(m["path"])
+        assert len(mesh.triangles) == m["triangles"] > 0 and len(mesh.vertices) == m["vertices"]
+        v = np.asarray(mesh.vertices)
+        assert (np.abs(v) <= half_mm + 1e-3).all()  # mm, inside the volume box
+        assert f"{m['vertices']} vertices, {m['triangles']} triangles" in text
+        assert isinstance(m["watertight"], bool)
+        if m["name"] != "combined":
+            total += m["triangles"]
+    assert info["combined"]["triangles"] == total
+    assert "watertight" in text
+
+
+def test_isosurface_of_exact_sphere_in_mm(files):
+    from kneas_method.evaluation.surfaces import grid_points
+    from kneas_method.export.mesh import drop_fragments, isosurface
+
+    run = load_run(files["kneas"])
+    grid, (xs, ys, zs) = grid_points(run.scene.geometry, resolution=48)
+    mm = grid.mm_per_unit
+    c, r = np.array([6.0, -4.0, 3.0]), 40.0
+    X, Y, Z = np.meshgrid(xs.numpy() * mm, ys.numpy() * mm, zs.numpy() * mm, indexing="ij")
+    field = np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - r
+    # a tiny separate blob, to be dropped as a fragment
+    field = np.minimum(field, np.sqrt((X - 50) ** 2 + (Y - 50) ** 2 + (Z - 50) ** 2) - 3.0)
+    mesh, extractor = isosurface(field, grid, 0.0)
+    comps, dropped, _ = drop_fragments(mesh, 64)
+    assert comps == 2 and dropped == 1
+    v = np.asarray(mesh.vertices)
+    assert np.allclose(np.linalg.norm(v - c, axis=1), r, atol=0.5)
+    assert mesh.is_watertight()
+    # outward-facing triangles: the signed volume is positive and close to the sphere's
+    t = np.asarray(mesh.triangles)
+    signed = np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6.0
+    assert signed == pytest.approx(4 / 3 * np.pi * r**3, rel=0.03)
+    assert extractor
+
+
+@pytest.mark.parametrize("fmt", ["obj", "stl", "glb"])
+def test_mesh_formats(files, tmp_path, fmt):
+    out = tmp_path / fmt
+    assert _cli(["mesh", str(files["kneas"]), "-o", str(out), "--resolution", "24", "--format", fmt]) == 0
+    info = json.loads((out / "meshes.json").read_text())
+    for m in info["meshes"]:
+        assert m["path"].endswith("." + fmt)
+        assert len(o3d.io.read_triangle_mesh(m["path"]).triangles) > 0
+
+
+def test_mesh_naf_thresholds_and_says_so(files, tmp_path, capsys):
+    run_dir = write_run(files["root"] / "naf", "naf", files["scene"])
+    out = tmp_path / "naf"
+    run = load_run(run_dir)
+    from kneas_method.evaluation.surfaces import query_grid
+
+    mu = query_grid(run.model, run.scene.geometry, keys=("mu",))["mu"]
+    level = float(np.quantile(mu, 0.7))
+    assert _cli(["mesh", str(run_dir), "-o", str(out), "--resolution", "24", "--threshold", str(level)]) == 0
+    text = capsys.readouterr().out
+    assert "no signed distance field: thresholded the attenuation" in text
+    info = json.loads((out / "meshes.json").read_text())
+    assert info["kind"] == "attenuation" and info["thresholds_data_units"] == [pytest.approx(level)]
+    assert info["meshes"][0]["triangles"] > 0
+    # default: Otsu threshold
+    assert _cli(["mesh", str(run_dir), "-o", str(tmp_path / "naf2"), "--resolution", "24"]) == 0
+    assert "Otsu" in capsys.readouterr().out
+
+
+def test_mesh_user_errors(files, tmp_path, capsys):
+    assert _cli(["mesh", str(tmp_path / "missing")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert _cli(["mesh", str(files["kneas"]), "--resolution", "1", "-o", str(tmp_path / "x")]) == 2
+    assert "--resolution" in capsys.readouterr().err
+
+
+def test_missing_open3d_is_one_line(monkeypatch):
+    import builtins
+
+    from kneas_method.export import mesh as mesh_mod
+
+    real = builtins.__import__
+
+    def fake(name, *a, **kw):
+        if name == "open3d" or name.startswith("open3d."):
+            raise ImportError("no open3d")
+        return real(name, *a, **kw)
+
+    monkeypatch.setattr(builtins, "__import__", fake)
+    with pytest.raises(KneasError, match=r"pip install 'kneas\[mesh\]'"):
+        mesh_mod.import_open3d()
+
+
+# ------------------------------------------------------------------- volumes
+def test_volume_export_nifti_affine(files, tmp_path):
+    out = tmp_path / "vol"
+    assert _cli(["volume", str(files["kneas"]), "-o", str(out)]) == 0
+    run = load_run(files["kneas"])
+    g = run.scene.geometry
+    img = nib.load(str(out / "attenuation.nii.gz"))
+    lab = nib.load(str(out / "labels.nii.gz"))
+    assert img.shape == tuple(g.n_voxel) and lab.shape == tuple(g.n_voxel)
+    assert np.allclose(img.header.get_zooms()[:3], np.array(g.d_voxel) * g.mm_per_unit)
+    assert img.header.get_xyzt_units()[0] == "mm"
+    centres_mm = g.voxel_centres(dtype=torch.float64).numpy() * g.mm_per_unit
+    for aff in (img.affine, img.get_qform(), lab.affine):
+        for idx in [(0, 0, 0), (3, 9, 14), (15, 15, 15)]:
+            assert np.allclose(aff @ np.array([*idx, 1.0]), [*centres_mm[idx], 1.0], atol=1e-4)
+    data = np.asarray(img.dataobj)
+    assert np.array_equal(data, np.load(out / "attenuation.npy"))
+    labels = np.asarray(lab.dataobj)
+    assert labels.dtype == np.uint8 and set(np.unique(labels)) <= {0, 1, 2}
+    assert np.array_equal(labels, np.load(out / "labels.npy"))
+    info = json.loads((out / "volume.json").read_text())
+    assert np.allclose(info["voxel_mm"], np.array(g.d_voxel) * g.mm_per_unit)
+    # the volume is the model's mu at the voxel centres (data units)
+    pts = g.voxel_centres()[2, 4, 6][None]
+    assert data[2, 4, 6] == pytest.approx(float(run.model.query(pts)["mu"][0].detach()), abs=1e-5)
+
+
+def test_affine_with_origin_offset(files):
+    import dataclasses
+
+    run = load_run(files["kneas"])
+    g = dataclasses.replace(run.scene.geometry, off_origin=(0.01, -0.02, 0.03), n_voxel=(4, 5, 6))
+    aff = volume_affine(g)
+    c = g.voxel_centres(dtype=torch.float64).numpy() * g.mm_per_unit
+    assert np.allclose(aff @ [3, 4, 5, 1], [*c[3, 4, 5], 1])
+    assert np.allclose(aff[:3, 3], c[0, 0, 0])
+
+
+def test_fdk_volume_and_mesh(files, tmp_path, capsys):
+    from kneas_method.data.scenes import resolve_scene
+
+    scene = resolve_scene(str(files["scene"]))
+    run_dir = write_fdk_run(files["root"] / "fdk", files["scene"], scene.image)
+    assert _cli(["volume", str(run_dir), "-o", str(tmp_path / "v"), "--threshold", "0.15", "--threshold", "0.55"]) == 0
+    assert np.array_equal(np.load(tmp_path / "v" / "attenuation.npy"), scene.image)
+    labels = np.load(tmp_path / "v" / "labels.npy")
+    assert (labels == (scene.image > 0.15).astype(int) + (scene.image > 0.55)).all()
+    assert _cli(["mesh", str(run_dir), "-o", str(tmp_path / "m"), "--resolution", "16", "--threshold", "0.15"]) == 0
+    assert "thresholded the attenuation" in capsys.readouterr().out
+    assert json.loads((tmp_path / "m" / "meshes.json").read_text())["meshes"][0]["triangles"] > 0
+
+
+# ------------------------------------------------------------------- figures
+def test_figures_export(files, capsys):
+    assert _cli(["figures", str(files["kneas"]), "--views", "2"]) == 0
+    out = files["kneas"] / "export"  # default: inside the run
+    names = sorted(p.name for p in out.glob("*.png"))
+    assert names == ["labels.png", "projection-000.png", "projection-002.png", "slices.png", "weights.png"]
+    assert all((out / n).stat().st_size > 1000 for n in names)

@@ -1,0 +1,118 @@
+"""Material labels, matching and surface metrics against exact ground truth (evaluation.surfaces)."""
+
+import numpy as np
+import pytest
+import torch
+
+from kneas_method.errors import KneasError
+from kneas_method.evaluation.surfaces import (
+    fine_geometry,
+    gt_levels,
+    labels_from_weights,
+    map_labels,
+    match_materials,
+    material_metrics,
+    membership_grid,
+    query_grid,
+    visible_fields,
+)
+from test_export_support import exact_sphere_model, sphere_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return sphere_scene()
+
+
+def test_exact_sdf_scores_zero_error_and_dice_one(scene):
+    model = exact_sphere_model(scene)
+    r = material_metrics(model, scene, factor=2)
+    voxel_mm = 8.0
+    assert r["fscore_threshold_mm"] == pytest.approx(voxel_mm)
+    assert [m["gt_label"] for m in r["matching"]] == [1, 2]
+    for name in ("soft", "bone"):
+        m = r["materials"][name]
+        assert m["dice"] == pytest.approx(1.0)
+        # prediction: marching cubes on the exact SDF; ground truth: marching cubes on the exact
+        # membership mask at 2x resolution -> only the mask's staircase (< 1/4 voxel) remains
+        assert m["chamfer_mm"] < 0.25 * voxel_mm
+        assert m["fscore"] == pytest.approx(1.0)
+        assert m["pred_surface_points"] > 100 and m["gt_surface_points"] > 100
+    assert r["dice_mean"] == pytest.approx(1.0)
+    assert np.allclose(r["dice_matrix"], np.eye(2))
+
+
+def test_shifted_sdf_error_is_about_half_the_shift(scene):
+    shift = 8.0  # one voxel along x: mean nearest distance between the spheres ~ shift/2
+    r = material_metrics(exact_sphere_model(scene, shift_mm=(shift, 0.0, 0.0)), scene, factor=2)
+    for name in ("soft", "bone"):
+        m = r["materials"][name]
+        assert 0.3 * shift < m["chamfer_mm"] < 0.7 * shift
+        assert m["dice"] < 0.9
+    # the finer the ground-truth grid, the smaller the exact-SDF error
+    exact2 = material_metrics(exact_sphere_model(scene), scene, factor=2)["materials"]["soft"]["chamfer_mm"]
+    exact3 = material_metrics(exact_sphere_model(scene), scene, factor=3)["materials"]["soft"]["chamfer_mm"]
+    assert exact3 < exact2
+
+
+def test_labels_from_weights_air_threshold():
+    w = np.array([[0.1, 0.2], [0.6, 0.1], [0.2, 0.5], [0.3, 0.3]])
+    assert labels_from_weights(w).tolist() == [0, 1, 2, 1]
+    assert labels_from_weights(w, air_threshold=0.65).tolist() == [0, 1, 2, 0]
+
+
+def test_matching_with_more_and_fewer_materials():
+    levels = [0.28, 0.5, 0.9]
+    # K = 4 > M = 3: two predicted materials land on the same label
+    assert match_materials([0.25, 0.3, 0.55, 1.0], levels) == [1, 1, 2, 3]
+    # K = 2 < M = 3
+    assert match_materials([0.3, 0.8], levels) == [1, 3]
+    pred = np.array([0, 1, 2, 3, 4], dtype=np.uint8)
+    assert map_labels(pred, [1, 1, 2, 3]).tolist() == [0, 1, 1, 2, 3]
+
+
+def test_visible_fields_is_the_csg_of_the_selector():
+    d = np.array([[-1.0, 0.5, 2.0],    # only material 1 inside -> 1 visible
+                  [-1.0, -0.5, 2.0],   # 1 and 2 inside -> 2 covers 1
+                  [-1.0, -0.5, -0.2],  # all inside -> 3 visible
+                  [1.0, 1.0, 1.0]])    # air
+    e = visible_fields(d)
+    vis = np.where((e < 0).any(-1), np.argmax(e < 0, -1) + 1, 0)
+    assert vis.tolist() == [1, 2, 3, 0]
+    assert ((e < 0).sum(-1) <= 1).all()  # at most one visible material per point
+
+
+def test_query_grid_chunks_agree(scene):
+    model = exact_sphere_model(scene)
+    a = query_grid(model, scene.geometry, chunk=100_000)
+    b = query_grid(model, scene.geometry, chunk=37)
+    for k in ("mu", "weights", "distances"):
+        assert a[k].dtype == np.float32 and np.allclose(a[k], b[k], atol=1e-5)
+    assert a["weights"].shape == (16, 16, 16, 2)
+    # the grid is the scene's voxel grid: voxel centre [a, b, c] at (x_a, y_b, z_c)
+    pts = scene.geometry.voxel_centres()[3, 5, 7][None]
+    assert np.allclose(a["distances"][3, 5, 7], model.query(pts)["distances"][0].detach().numpy(), atol=1e-6)
+
+
+def test_fine_grid_and_membership(scene):
+    fg = fine_geometry(scene.geometry, 2)
+    assert fg.n_voxel == (32, 32, 32) and fg.scale == scene.geometry.scale
+    assert np.allclose([n * d for n, d in zip(fg.n_voxel, fg.d_voxel)], [n * d for n, d in zip(scene.geometry.n_voxel, scene.geometry.d_voxel)])
+    assert np.array_equal(membership_grid(scene, scene.geometry), scene.labels)
+    assert np.allclose(gt_levels(scene), [0.3, 0.8], atol=0.1)
+
+
+def test_foot_levels_from_the_phantom():
+    from kneas_method.data.simulate import simulate_phantom
+    from test_export_support import TINY_SIM
+
+    foot = simulate_phantom("foot", TINY_SIM)
+    assert gt_levels(foot).tolist() == [0.28, 0.5, 0.9]
+
+
+def test_no_labels_is_a_user_error(scene):
+    import dataclasses
+
+    bare = dataclasses.replace(scene, labels=None, membership=None)
+    with pytest.raises(KneasError, match="ground-truth labels"):
+        material_metrics(exact_sphere_model(scene), bare)
