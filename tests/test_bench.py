@@ -239,6 +239,11 @@ def test_resume_skips_complete_cells_and_records_failures(tmp_path, fake_prefix,
     assert len(cells) == 9
     # one cell is already complete from an earlier run: it must not be trained again
     _write_metrics(out, cells[0], _m(1, 1, 1, 1), "built-in")
+    # a helper run's metrics (the NeAS-1M prior of an interrupted k-neas run) do not make a cell complete
+    prior = cell_dir(out, cells[1]) / "foot" / "neas-1m-prior" / "abc123"
+    prior.mkdir(parents=True)
+    (prior / "metrics.json").write_text("{}")
+    assert cells[1].method == "k-neas" and not is_complete(out, cells[1])
     seen = []
     results = backends.LocalBackend(workers=1).run([c for c in cells if not is_complete(out, c)], out, fake_prefix,
                                                    on_result=lambda c, r: seen.append((c.id, r.status)))
@@ -324,7 +329,7 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
         cli.main(["views", "--preset", "tiny", "--seeds", "1", "--dry-run", "--output-dir", str(tmp_path / "o")])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    assert "12 of 12 cells to run" in out and "steps x 0.009 s (tiny, cpu)" in out
+    assert "12 of 12 cells to run" in out and "steps x 0.04 s (tiny, cpu)" in out
     assert not (tmp_path / "o").exists()  # a dry run creates nothing
     for argv, msg in ((["table1", "--seeds", "0"], "number of seeds"),
                       (["grid", "--methods", "nope"], "unknown method"),

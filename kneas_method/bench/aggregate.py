@@ -87,7 +87,7 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
     for cell in cells:
         g = groups.setdefault(cell.group, Group(cell.group))
         g.expected += 1
-        m = find_metrics(cell_dir(output_dir, cell))
+        m = find_metrics(cell_dir(output_dir, cell), cell.method)
         if m is None:
             rec = read_cell_record(output_dir, cell)
             if rec and rec.get("status") == "failed":
@@ -368,7 +368,7 @@ def cells_csv(output_dir: str | Path, cells: Sequence[Cell]) -> str:
     metrics = (*METRICS, *CSV_EXTRA_METRICS)
     w.writerow(["cell_id", "scene", "method", "k", "views", "seed", "preset", "status", *metrics, "wall_time_s", "steps", "scene_source", "run_dir"])
     for c in cells:
-        m = find_metrics(cell_dir(output_dir, c))
+        m = find_metrics(cell_dir(output_dir, c), c.method)
         data: dict = {}
         status = "missing"
         if m is not None:

@@ -29,7 +29,7 @@ from typing import Callable, Optional, Sequence
 
 from ..engine.run_dir import write_json
 from ..errors import ConfigError, missing_optional
-from .cells import CellResult, cell_dir, run_cell
+from .cells import CellResult, cell_dir, mark_interrupted, run_cell
 from .grid import DEFAULT_TRAIN_PREFIX, Cell
 
 OnResult = Callable[[Cell, CellResult], None]
@@ -143,6 +143,20 @@ def _ray_run_cell(cell: Cell, output_dir: str, prefix: list[str], threads: Optio
     return run_cell(cell, output_dir, prefix, env)
 
 
+def _raise_interrupt(signum, frame):  # pragma: no cover - signal path
+    raise KeyboardInterrupt
+
+
+def _sigterm_as_interrupt() -> None:
+    """SIGTERM -> KeyboardInterrupt, so a killed kneas-bench cancels its runs and stops Ray it started."""
+    import signal
+
+    try:
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+    except ValueError:  # not the main thread
+        pass
+
+
 def import_ray():
     try:
         import ray
@@ -186,6 +200,7 @@ class RayBackend:
             else:
                 ray.init(num_cpus=self.num_cpus or cpu_count(), object_store_memory=self.object_store_memory, **kwargs)
                 self._started_here = True
+        _sigterm_as_interrupt()  # ray.init installs a handler that aborts on SIGTERM; stop cleanly instead
         resources = ray.cluster_resources()
         self._gpus = float(resources.get("GPU", 0.0))
         return resources
@@ -232,6 +247,8 @@ class RayBackend:
                         ray.cancel(ref, force=True)
                     except Exception:
                         pass
+                for ref in pending:
+                    mark_interrupted(output_dir, refs[ref])
                 raise
             return results
         finally:

@@ -32,19 +32,29 @@ def cell_dir(output_dir: str | Path, cell: Cell) -> Path:
     return Path(output_dir) / CELLS / cell.id
 
 
-def find_metrics(folder: str | Path) -> Optional[Path]:
-    """The newest ``metrics.json`` of a run under ``folder/<scene>/<method>/<run>/``, or None."""
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name)) or "x"
+
+
+def find_metrics(folder: str | Path, method: Optional[str] = None) -> Optional[Path]:
+    """The newest ``metrics.json`` of a ``method`` run under ``folder/<scene>/<method>/<run>/``, or None.
+
+    Only the cell's own method counts: kneas-train also writes metrics of helper
+    runs beside it (e.g. the NeAS-1M prior in ``<scene>/neas-1m-prior/<hash>/``),
+    which must not make a cell look complete.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         return None
-    found = [p for p in folder.glob("*/*/*/metrics.json") if p.is_file()]
+    pattern = f"*/{_safe(method)}/*/metrics.json" if method else "*/*/*/metrics.json"
+    found = [p for p in folder.glob(pattern) if p.is_file()]
     if not found:
         return None
     return max(found, key=lambda p: p.stat().st_mtime)
 
 
 def is_complete(output_dir: str | Path, cell: Cell) -> bool:
-    return find_metrics(cell_dir(output_dir, cell)) is not None
+    return find_metrics(cell_dir(output_dir, cell), cell.method) is not None
 
 
 @dataclass
@@ -93,7 +103,7 @@ def run_cell(cell: Cell, output_dir: str | Path, prefix: Sequence[str] = DEFAULT
     ``train.log``) is recorded and returned, so the other cells go on.
     """
     folder = cell_dir(output_dir, cell)
-    done = find_metrics(folder)
+    done = find_metrics(folder, cell.method)
     if done is not None:
         return CellResult(cell.id, "skipped", run_dir=str(done.parent))
     folder.mkdir(parents=True, exist_ok=True)
@@ -129,7 +139,7 @@ def run_cell(cell: Cell, output_dir: str | Path, prefix: Sequence[str] = DEFAULT
     except OSError as exc:
         error = f"could not start kneas-train: {exc}"
     wall = time.monotonic() - t0
-    metrics = find_metrics(folder)
+    metrics = find_metrics(folder, cell.method)
     if metrics is not None:
         # metrics.json is what makes a cell complete; a non-zero exit after it is noted, not fatal.
         note = None if rc == 0 else f"kneas-train exited with status {rc} after writing metrics.json:\n{_tail(log)}"
@@ -143,6 +153,15 @@ def run_cell(cell: Cell, output_dir: str | Path, prefix: Sequence[str] = DEFAULT
                   returncode=rc, finished=time.strftime("%Y-%m-%dT%H:%M:%S"))
     write_json(folder / "cell.json", record)
     return result
+
+
+def mark_interrupted(output_dir: str | Path, cell: Cell) -> None:
+    """Record a cell whose run was stopped from outside (e.g. a cancelled Ray task) as interrupted."""
+    path = cell_dir(output_dir, cell) / "cell.json"
+    rec = read_cell_record(output_dir, cell)
+    if rec and rec.get("status") == "running" and not is_complete(output_dir, cell):
+        rec["status"] = "interrupted"
+        write_json(path, rec)
 
 
 def read_cell_record(output_dir: str | Path, cell: Cell) -> Optional[dict]:

@@ -14,12 +14,15 @@ How a cell's cost is estimated (printed with the dry run):
    ``--trainer.epochs`` / ``--trainer.prior-epochs`` arguments are honoured.
    FDK costs only the overhead.
 
-The seconds-per-step table was measured once with one k-neas (K = 2) training
-step (forward, eikonal, backward, Adam) on the built-in foot scene, torch
-2.13 CPU, 2 cores that were shared with other work (load ~3.5), so it is on
-the pessimistic side: tiny 0.009 s, cpu 1.5 s (1.1-2.9 s), paper 13 s (10.6-15.8 s).
-No GPU was available when it was measured: GPU rows are ``None`` and the
-estimate says so; a first completed cell then calibrates rule 1.
+Where the figures come from (torch 2.13 CPU, 2 cores shared with other work,
+so pessimistic): ``tiny`` from the first real ``kneas-bench table1 --preset
+tiny`` cells (``train_time_s / steps`` = 0.038 s per step, evaluation and start-up
+~60 s per run, at load ~10); ``cpu`` and ``paper`` from timing single k-neas
+(K = 2) training steps (forward, eikonal, backward, Adam) on the built-in foot
+scene at load ~3.5: cpu 1.5 s (1.1-2.9 s; measured before the cpu preset was
+retuned to 6 levels), paper 13 s (10.6-15.8 s). Their per-run overheads are
+guesses, not measurements. No GPU was available: GPU rows are ``None`` and
+the estimate says so; a first completed cell then calibrates rule 1.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ DEFAULT_VIEWS = 50
 
 # seconds per training step, by (preset, device kind). None = not measured.
 SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
-    ("tiny", "cpu"): 0.009,
+    ("tiny", "cpu"): 0.04,
     ("cpu", "cpu"): 1.5,
     ("paper", "cpu"): 13.0,
     ("tiny", "gpu"): None,
@@ -45,7 +48,7 @@ SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
 }
 # fixed per-run overhead in seconds (interpreter + torch import, scene load or
 # simulation, evaluation on the held-out views, volume metrics, figures), by preset.
-OVERHEAD_S: dict[str, float] = {"tiny": 8.0, "cpu": 60.0, "paper": 120.0}
+OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 180.0, "paper": 300.0}
 FDK_S = 10.0
 PRIOR_METHODS_NO = ("neas-1m", "naf", "fdk")
 
@@ -91,7 +94,7 @@ def measured_here(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, 
 
     times: dict[tuple, list[float]] = {}
     for c in cells:
-        m = find_metrics(cell_dir(output_dir, c))
+        m = find_metrics(cell_dir(output_dir, c), c.method)
         if m is None:
             continue
         try:

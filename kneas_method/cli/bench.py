@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import shlex
-import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -168,7 +167,7 @@ def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
         t.add_column(col, overflow="fold")
     total, unknown, todo = 0.0, 0, 0
     for c in cells:
-        if find_metrics(cell_dir(output_dir, c)) is not None:
+        if find_metrics(cell_dir(output_dir, c), c.method) is not None:
             t.add_row(*_labels(c), "complete (skipped)", "-", "")
             continue
         rec = read_cell_record(output_dir, c)
@@ -243,18 +242,13 @@ def run(args: _Common) -> int:
     return 0
 
 
-def _sigterm(signum, frame):  # pragma: no cover - signal path
-    raise KeyboardInterrupt
-
-
 def main(argv: Optional[Sequence[str]] = None) -> None:
     """Console entry point ``kneas-bench``."""
 
     def body():
-        try:
-            signal.signal(signal.SIGTERM, _sigterm)
-        except ValueError:  # not the main thread
-            pass
+        from ..bench.backends import _sigterm_as_interrupt
+
+        _sigterm_as_interrupt()
         return run(parse_args(sys.argv[1:] if argv is None else argv))
 
     run_cli(body)
