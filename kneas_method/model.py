@@ -95,6 +95,13 @@ class ModelConfig(InstantiateConfig):
             is evaluated on (1.0 = all, reusing the render's SDF outputs).
         eikonal_fd_step: finite-difference step (model units); None = half the
             finest hash-grid cell.
+        reference: run the straightforward implementation kept for speed
+            comparisons (``benchmarks/step.py --reference``): the hash grid as a
+            per-level Python loop and the exact eikonal as K separate
+            ``autograd.grad(create_graph=True)`` double backwards. Same values as
+            the default path, which with the torch hash grid and ``eikonal_mode``
+            autograd gets the K distance gradients in forward mode from the
+            render's own pass (``SDFField.forward_with_gradients``).
     """
 
     _target = "kneas_method.model:CTModel"
@@ -123,6 +130,7 @@ class ModelConfig(InstantiateConfig):
     eikonal_fraction: Optional[float] = None
     eikonal_fd_step: Optional[float] = None
     lambda_eikonal: float = 0.01
+    reference: bool = False
 
 
 def _finest_cell(encoding_cfg, bound: float) -> float:
@@ -192,6 +200,11 @@ class CTModel(nn.Module):
             if hasattr(ek_cfg, "fd_step"):
                 changes["fd_step"] = config.eikonal_fd_step
             self.eikonal = dataclasses.replace(ek_cfg, **changes).setup(default_step=_finest_cell(enc_cfg, self.bound))
+        if config.reference:
+            if hasattr(encoding, "reference"):
+                encoding.reference = True
+            if self.eikonal is not None and hasattr(self.eikonal, "reference"):
+                self.eikonal.reference = True
 
     # ------------------------------------------------------------------ setup
     def set_bounds(self, alphas: Sequence[float], betas: Sequence[float]) -> None:
@@ -219,19 +232,32 @@ class CTModel(nn.Module):
         """
         if not self.has_sdf:
             return {"mu": self.field(points)}
-        distances, features = self.field(points)
+        return self._materials(*self.field(points))
+
+    def _materials(self, distances, features) -> dict[str, torch.Tensor]:
         mu_bar = self.attenuation(features)
         mu, weights = self.selector(distances, mu_bar, self.boundary)
         return {"mu": mu, "weights": weights, "distances": distances, "mu_materials": mu_bar}
 
+    @property
+    def fused_eikonal(self) -> bool:
+        """True when the exact eikonal gradients come in forward mode from the render's pass."""
+        return (self.eikonal is not None and self.eikonal.config.mode == "autograd" and not self.config.reference
+                and bool(getattr(self.field, "has_analytic_gradients", False)))
+
     # ----------------------------------------------------------------- render
-    def _render(self, origins, directions, near, far, n_samples, stratified, generator=None, points_grad=False):
+    def _render(self, origins, directions, near, far, n_samples, stratified, generator=None, points_grad=False, with_grads=False):
         R = origins.shape[0]
         t = self.ray_sampler.sample(near, far, R, n_samples, stratified, device=origins.device, dtype=origins.dtype, generator=generator)
         flat = sample_points(origins, directions, t).reshape(-1, 3)
         if points_grad:
             flat = flat.detach().requires_grad_(True)
-        q = self.query(flat)
+        if with_grads:  # distances, features and d distances / d x [P, K, 3] in one pass
+            distances, features, grads = self.field.forward_with_gradients(flat.detach())
+            q = self._materials(distances, features)
+            q["grads"] = grads
+        else:
+            q = self.query(flat)
         mu = q["mu"].reshape(R, n_samples)
         intensity, line = beer_lambert(mu, segment_lengths(t, directions, self.scale))
         return intensity, line, mu, t, flat, q
@@ -304,8 +330,10 @@ class CTModel(nn.Module):
         if n_samples is None:
             raise ConfigError("model.num_samples is unset; resolve the config with presets.resolve first")
         frac = 1.0 if cfg.eikonal_fraction is None else float(cfg.eikonal_fraction)
+        fused = self.fused_eikonal
         eik_same = self.eikonal is not None and frac >= 1.0 and self.eikonal.config.mode == "autograd"
-        intensity, _, _, _, flat, q = self._render(origins, directions, batch["near"], batch["far"], int(n_samples), True, generator, points_grad=eik_same)
+        intensity, _, _, _, flat, q = self._render(origins, directions, batch["near"], batch["far"], int(n_samples), True, generator,
+                                                   points_grad=eik_same and not fused, with_grads=eik_same and fused)
         out: dict[str, torch.Tensor] = {}
         out["intensity"] = self.intensity_loss(intensity[~air], p[~air])
         if use_air:
@@ -313,11 +341,13 @@ class CTModel(nn.Module):
         if self.eikonal is not None:
             inside = (flat.detach().abs() <= self.bound).all(-1)
             if eik_same:
-                eik = self.eikonal(self.field.distances, flat, q["distances"], mask=inside)
+                eik = self.eikonal(self.field.distances, flat, q["distances"], mask=inside, grads=q.get("grads"))
             else:
                 n = max(1, int(round(frac * len(flat))))
                 idx = torch.randperm(len(flat), device="cpu", generator=generator)[:n].to(flat.device) if n < len(flat) else slice(None)
-                eik = self.eikonal(self.field.distances, flat[idx].detach(), None, mask=inside[idx])
+                sub = flat[idx].detach()
+                grads = self.field.forward_with_gradients(sub)[2] if fused else None
+                eik = self.eikonal(self.field.distances, sub, None, mask=inside[idx], grads=grads)
             out["eikonal"] = cfg.lambda_eikonal * eik
         out["total"] = sum(out.values())
         return out

@@ -79,6 +79,51 @@ class SDFField(nn.Module):
         """Signed distances only: [P, 3] -> [P, K] (model units)."""
         return self.forward(points)[0]
 
+    @property
+    def has_analytic_gradients(self) -> bool:
+        """True when :meth:`forward_with_gradients` works: the encoding gives its
+        Jacobian (torch hash grid, not in ``reference`` mode) and the MLP is Linear/ReLU only."""
+        enc = self.encoding
+        return (hasattr(enc, "encode_with_jacobian") and not getattr(enc, "reference", False)
+                and all(isinstance(m, (nn.Linear, nn.ReLU)) for m in self.mlp))
+
+    def forward_with_gradients(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Distances, features and the spatial gradients of all K distances in one pass.
+
+        Forward-mode differentiation with 3 tangents carried alongside the values
+        (the encoding's Jacobian from the same gather, then ``W·J`` and the ReLU mask
+        per layer): ``grads`` equals ``torch.autograd.grad(distances[:, k].sum(), points,
+        create_graph=True)`` for every k, and stays differentiable with respect to the
+        parameters, so the eikonal term needs one first-order backward instead of K
+        double backwards.
+
+        Args:
+            points: ``[P, 3]`` model units.
+
+        Returns:
+            ``distances [P, K]`` (model units), ``features [P, feature_dim]``,
+            ``grads [P, K, 3]`` (d distance / d point, unit-free).
+        """
+        bound = self.config.bound
+        x = points / bound
+        inside = ((x >= -1.0) & (x <= 1.0)).to(points.dtype)  # clamp passes the gradient inside, ends included
+        h, jac = self.encoding.encode_with_jacobian(x.clamp(-1.0, 1.0))  # [P, E], [P, 3, E]
+        h = h.float()
+        P = h.shape[0]
+        t = jac.float().reshape(P * 3, -1)  # tangents [P*3, E]
+        K = self.num_materials
+        last = len(self.mlp) - 1
+        for i, m in enumerate(self.mlp):
+            if isinstance(m, nn.Linear):
+                h = m(h)
+                t = t @ (m.weight[:K] if i == last else m.weight).t()  # only the K distances need tangents
+            else:  # ReLU
+                mask = h > 0
+                h = torch.relu(h)
+                t = (t.view(P, 3, -1) * mask[:, None, :]).view(P * 3, -1)
+        grads = t.view(P, 3, K).transpose(1, 2) * (inside / bound)[:, None, :]  # [P, K, 3]
+        return h[:, :K], h[:, K:], grads
+
 
 class SurfaceBoundary(nn.Module):
     """``Omega(d, s) = sigmoid(-s * d)``: occupancy in (0, 1) from a signed distance.

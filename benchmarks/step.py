@@ -1,0 +1,185 @@
+"""Time one full training step of the paper architecture (not part of the test suite).
+
+    python benchmarks/step.py --rays 256 --samples 64 --materials 3 --device cpu
+    python benchmarks/step.py --rays 256 --samples 64 --materials 3 --device cpu --reference
+    python benchmarks/step.py --rays 256 --samples 64 --materials 3 --device cpu --compare
+
+One step = what the trainer does per training projection: draw a batch (done up
+front here, from the built-in foot scene, so only the model is timed), render
+``rays`` object rays + ``rays // 4`` air rays (the paper's 512 : 128) with
+``samples`` stratified points each, the losses of k-neas (intensity + floater +
+exact eikonal on every sample, SPEC §3), ``backward``, and an Adam step with
+``zero_grad``. Architecture: the paper's hash grid (14 levels x 2 features,
+2^19 entries, 12.2 M parameters), SDF MLP, shared attenuation body with K heads,
+soft selector (``--materials K``).
+
+Paths:
+
+- default (fast): vectorised hash grid; the K distance gradients in forward mode
+  from the render's own pass (``SDFField.forward_with_gradients``: no double
+  backward); masked eikonal mean without boolean indexing; fused Adam (``--optimizer``).
+- ``--reference`` (the straightforward implementation, ``ModelConfig.reference``):
+  the hash grid as a per-level Python loop with 8 gathers per level; the eikonal by
+  K separate ``autograd.grad(d_k.sum(), x, create_graph=True)`` double backwards on
+  every sample; ``torch.optim.Adam`` with its default (single-tensor, dense) update.
+- ``--reference --reference-grid vectorised``: as ``--reference`` but with the
+  vectorised hash grid, i.e. exactly the repository's training step before the
+  speed work (the stricter baseline).
+- ``--compare``: both models in one process, steps interleaved (ref, fast, ref, ...),
+  so machine load hits both alike; prints both medians and the speed-up.
+
+Prints ``step_ms: X`` (median over ``--repeats`` after ``--warmup``) and
+``samples_per_s: Y`` and writes JSON (``--out``, default
+``benchmarks/results/step_<device>[_reference|_compare].json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+HERE = Path(__file__).resolve().parent
+
+
+def build(args, mode: str, device: torch.device):
+    """``mode``: ``fast``, ``reference`` (loop grid) or ``reference-vectorised-grid``."""
+    reference = mode != "fast"
+    from kneas_method import methods, presets
+
+    cfg = dataclasses.replace(methods.k_neas.config, preset="paper", num_materials=args.materials)
+    cfg = presets.resolve(cfg)
+    enc = dict(cfg.model.encoding_options)
+    enc["implementation"] = "tcnn" if args.tcnn and not reference else "torch"
+    model_cfg = dataclasses.replace(
+        cfg.model, num_samples=args.samples, encoding_options=enc, reference=reference,
+        eikonal_mode="autograd" if reference else args.eikonal_mode, eikonal_fraction=1.0 if reference else args.eikonal_fraction,
+    )
+    torch.manual_seed(args.seed)
+    model = model_cfg.setup(scale=args.scale, device=device).to(device)
+    if mode == "reference-vectorised-grid":
+        model.field.encoding.reference = False  # the repository's code before the speed work
+    model.train()
+    if reference or args.optimizer == "adam":
+        opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    elif args.optimizer == "adam-fused":
+        opt = torch.optim.Adam(model.parameters(), lr=1e-3, fused=True)
+    elif args.optimizer == "adam-foreach":
+        opt = torch.optim.Adam(model.parameters(), lr=1e-3, foreach=True)
+    else:
+        raise SystemExit(f"unknown --optimizer {args.optimizer}")
+    return model, opt
+
+
+def batches(args, device: torch.device, n: int = 8):
+    """``n`` training batches of the built-in foot scene (rays object + rays//4 air)."""
+    from kneas_method.data.scenes import builtin_scene
+    from kneas_method.datamanagers.ct import CTDataManagerConfig
+
+    scene = builtin_scene("foot")
+    dm = CTDataManagerConfig(num_object_rays=args.rays, num_air_rays=max(1, args.rays // 4)).setup(scene=scene, device=device, seed=args.seed)
+    return [dm.next_train() for _ in range(n)], float(scene.geometry.scale)
+
+
+def step(model, opt, batch, generator, progress: float = 0.0) -> float:
+    losses = model.loss_dict(batch, progress, generator=generator)
+    opt.zero_grad(set_to_none=True)
+    losses["total"].backward()
+    opt.step()
+    return losses["total"]
+
+
+def sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rays", type=int, default=256, help="object rays per step (plus rays//4 air rays)")
+    ap.add_argument("--samples", type=int, default=64, help="samples per ray")
+    ap.add_argument("--materials", type=int, default=3, help="K")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--reference", action="store_true", help="time the straightforward implementation")
+    ap.add_argument("--compare", action="store_true", help="time reference and fast interleaved in one process")
+    ap.add_argument("--reference-grid", default="loop", choices=["loop", "vectorised", "both"],
+                    help="hash grid of the reference: the per-level loop (default) or the vectorised one "
+                         "(= the repository's code before the speed work); 'both' with --compare times all three")
+    ap.add_argument("--eikonal-mode", default="autograd", choices=["autograd", "finite-difference"],
+                    help="fast path: exact (forward-mode gradients) or finite differences")
+    ap.add_argument("--eikonal-fraction", type=float, default=1.0, help="fast path: fraction of samples with the eikonal term")
+    ap.add_argument("--optimizer", default="adam-fused", choices=["adam", "adam-fused", "adam-foreach"], help="fast path optimiser")
+    ap.add_argument("--tcnn", action="store_true", help="fast path: tinycudann hash grid (CUDA; needs --eikonal-mode finite-difference)")
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    data, args.scale = batches(args, device)
+    n_rays = len(data[0]["origins"])
+    samples_per_step = n_rays * args.samples
+
+    ref = "reference-vectorised-grid" if args.reference_grid == "vectorised" else "reference"
+    if args.compare:
+        modes = (["reference", "reference-vectorised-grid"] if args.reference_grid == "both" else [ref]) + ["fast"]
+    else:
+        modes = [ref] if args.reference else ["fast"]
+    runs = {m: build(args, m, device) for m in modes}
+    gens = {m: torch.Generator().manual_seed(args.seed + 1) for m in modes}
+    times: dict[str, list[float]] = {m: [] for m in modes}
+    for i in range(args.warmup + args.repeats):
+        for m in modes:  # interleaved
+            model, opt = runs[m]
+            sync(device)
+            t0 = time.perf_counter()
+            step(model, opt, data[i % len(data)], gens[m])
+            sync(device)
+            if i >= args.warmup:
+                times[m].append(time.perf_counter() - t0)
+
+    result = {
+        "benchmark": "step",
+        "rays": args.rays, "air_rays": n_rays - args.rays, "samples": args.samples, "materials": args.materials,
+        "samples_per_step": samples_per_step, "device": str(device),
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
+                    "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+                    "gpu": torch.cuda.get_device_name(0) if device.type == "cuda" else None,
+                    "load_avg_1m": os.getloadavg()[0]},
+        "fast_options": {"eikonal_mode": args.eikonal_mode, "eikonal_fraction": args.eikonal_fraction,
+                         "optimizer": args.optimizer, "tcnn": args.tcnn},
+        "warmup": args.warmup, "repeats": args.repeats,
+    }
+    for m in modes:
+        med = statistics.median(times[m])
+        result[m] = {"step_ms": 1e3 * med, "samples_per_s": samples_per_step / med, "all_ms": [1e3 * t for t in times[m]]}
+        print(f"{m}: step_ms: {1e3 * med:.1f}  samples_per_s: {samples_per_step / med:.0f}")
+    if args.compare:
+        for m in modes[:-1]:
+            result[f"speedup_vs_{m}"] = result[m]["step_ms"] / result["fast"]["step_ms"]
+            print(f"speedup vs {m}: {result[f'speedup_vs_{m}']:.2f}x")
+    else:
+        print(f"step_ms: {result[modes[0]]['step_ms']:.1f}")
+        print(f"samples_per_s: {result[modes[0]]['samples_per_s']:.0f}")
+    print(f"load average (1 min) at end: {os.getloadavg()[0]:.2f}; torch threads {torch.get_num_threads()}")
+    suffix = "_compare" if args.compare else ("_reference" if args.reference else "")
+    out = Path(args.out) if args.out else HERE / "results" / f"step_{device.type}{suffix}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
