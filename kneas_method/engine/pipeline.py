@@ -53,6 +53,11 @@ PRIOR_FOLDER = "neas-1m-prior"
 
 
 # ------------------------------------------------------------------ helpers
+def say(msg: str, markup: bool = True) -> None:
+    """One message line, never wrapped (paths stay copyable and greppable)."""
+    console.print(msg, soft_wrap=True, markup=markup)
+
+
 def _tensorboard(run_dir: Path):
     """A SummaryWriter in ``run_dir/tensorboard`` when tensorboard is installed, else None."""
     try:
@@ -71,13 +76,13 @@ def load_scene(config, *, quiet: bool = False):
 
     def note(msg):
         if not quiet:
-            console.print(f"  {msg}")
+            say(f"  {msg}")
 
     scene = resolve_scene(config.scene, data_dir=config.data_dir, progress=note)
     full_train = len(scene.train)
     scene = scene.subsample_views(config.views)
     if not quiet:
-        console.print(f"scene: {scene.name} from {scene.source}; {len(scene.train)} of {full_train} training views, "
+        say(f"scene: {scene.name} from {scene.source}; {len(scene.train)} of {full_train} training views, "
                       f"{len(scene.val)} held-out views, volume {tuple(scene.geometry.n_voxel)}, detector {tuple(scene.geometry.n_detector)}")
     return scene
 
@@ -142,8 +147,8 @@ def _safe(name: str) -> str:
 
 def _print_interrupted(exc: StageInterrupted, run_dir: Path) -> int:
     where = exc.checkpoint or "no checkpoint (none written yet)"
-    console.print(f"[yellow]interrupted at step {exc.step}[/]: checkpoint {where}")
-    console.print(f"resume with: kneas-train --resume {run_dir}")
+    say(f"[yellow]interrupted at step {exc.step}[/]: checkpoint {where}")
+    say(f"resume with: kneas-train --resume {run_dir}")
     return EXIT_INTERRUPTED
 
 
@@ -154,8 +159,8 @@ def _train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, l
     path = trainer.resume()
     if path is not None:
         state = "complete" if trainer.complete else f"step {trainer.step}/{trainer.total_steps}"
-        console.print(f"{label}: resuming from {path} ({state})")
-    console.print(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
+        say(f"{label}: resuming from {path} ({state})")
+    say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
     trainer.train()
     return trainer
 
@@ -170,7 +175,7 @@ def run_prior(config, scene, device) -> tuple[np.ndarray, Path, float, bool]:
         try:
             volume = np.load(vol_path, allow_pickle=False)
             if tuple(volume.shape) == tuple(scene.geometry.n_voxel):
-                console.print(f"prior: reusing the NeAS-1M prior already trained for this scene, views, preset and seed: {folder}")
+                say(f"prior: reusing the NeAS-1M prior already trained for this scene, views, preset and seed: {folder}")
                 return volume, folder, 0.0, True
         except (OSError, ValueError):
             pass
@@ -183,7 +188,7 @@ def run_prior(config, scene, device) -> tuple[np.ndarray, Path, float, bool]:
     for sub in ("checkpoints", "figures"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     write_json(folder / "config.json", to_dict(pcfg))
-    console.print(f"prior: training the NeAS-1M prior for the GMM bounds in {folder}")
+    say(f"prior: training the NeAS-1M prior for the GMM bounds in {folder}")
     trainer = _train_stage(pcfg, scene, folder, epochs=pcfg.trainer.epochs, device=device, bounds=None, label="prior")
     volume = sample_volume(trainer.model, scene.geometry, device=device)
     np.save(vol_path, volume.astype(np.float32))
@@ -212,18 +217,18 @@ def estimate_bounds(config, scene, run_dir: Path, device) -> tuple[dict, float]:
             raise ConfigError(f"--bounds {config.bounds} has {b.K} materials but the run asks for K = {K}; "
                               f"drop --num-materials or use --num-materials {b.K}")
         info = {"alphas": list(b.alphas), "betas": list(b.betas), "K": b.K, "source": f"file {config.bounds}"}
-        console.print(f"bounds: from {config.bounds} (K = {b.K})")
+        say(f"bounds: from {config.bounds} (K = {b.K})")
         return info, 0.0
     m = config.model
     if m.alphas is not None and m.betas is not None:
         info = {"alphas": list(m.alphas), "betas": list(m.betas), "K": len(m.alphas), "source": "given (model.alphas/betas)"}
-        console.print(f"bounds: given on the command line (K = {len(m.alphas)})")
+        say(f"bounds: given on the command line (K = {len(m.alphas)})")
         return info, 0.0
     if config.bounds_source == "wide":
         from ..fields.attenuation import default_bounds
 
         a, b = default_bounds(int(m.num_materials))
-        console.print("bounds: NeAS wide defaults")
+        say("bounds: NeAS wide defaults")
         return {"alphas": a, "betas": b, "K": int(m.num_materials), "source": "wide (NeAS defaults)"}, 0.0
     # automatic: prior + GMM (SPEC §4)
     volume, prior_dir, prior_time, reused = run_prior(config, scene, device)
@@ -235,8 +240,8 @@ def estimate_bounds(config, scene, run_dir: Path, device) -> tuple[dict, float]:
     chosen = f"K = {gmm.n_components_} " + ("(given)" if n_comp is not None else "(BIC: " + ", ".join(f"K={k}: {v:.4g}" for k, v in sorted(gmm.bic_.items())) + ")")
     gmm.plot(run_dir / "figures" / "gmm_bounds.png", title=f"{scene.name}: GMM attenuation bounds ({config.bounds_method}), K = {gmm.n_components_}")
     for w in gmm.warnings_:
-        console.print(f"[yellow]bounds warning:[/] {w}")
-    console.print(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} prior voxel values, {chosen}; "
+        say(f"[yellow]bounds warning:[/] {w}")
+    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} prior voxel values, {chosen}; "
                   f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
     info = {"alphas": [float(v) for v in gmm.alphas_], "betas": [float(v) for v in gmm.betas_], "K": int(gmm.n_components_),
             "source": f"gmm ({config.bounds_method}) on the NeAS-1M prior", "k_chosen_by": "given" if n_comp is not None else "bic",
@@ -297,7 +302,7 @@ def _evaluate(model, scene, config, device) -> tuple[dict, np.ndarray, Optional[
 def _finish(run_dir: Path, metrics: dict) -> int:
     write_json(run_dir / "metrics.json", metrics)
     console.print(summary_table(metrics, title=f"{metrics.get('method')} on {metrics.get('scene')}"))
-    console.print(f"run folder: {run_dir}")
+    say(f"run folder: {run_dir}")
     return 0
 
 
@@ -306,7 +311,7 @@ def _run_fdk(config, scene, run_dir: Path, device) -> int:
     from ..evaluation.fdk import fdk_reconstruct
 
     t0 = time.perf_counter()
-    console.print(f"fdk: reconstructing from {len(scene.train)} views (filter {config.fdk_filter})")
+    say(f"fdk: reconstructing from {len(scene.train)} views (filter {config.fdk_filter})")
     volume = fdk_reconstruct(scene, filter=config.fdk_filter, device=device)
     rec_time = time.perf_counter() - t0
     np.save(run_dir / "volume.npy", volume.astype(np.float32))
@@ -339,7 +344,7 @@ def _run_neural(config, scene, run_dir: Path, device, run_start_wall: float) -> 
             bpath = run_dir / "bounds.json"
             if bpath.is_file():
                 info = read_json(bpath, "bounds file")
-                console.print(f"bounds: already estimated for this run ({bpath}; K = {info['K']})")
+                say(f"bounds: already estimated for this run ({bpath}; K = {info['K']})")
                 prior_time = float(info.get("prior_wall_time_s", 0.0))
             else:
                 info, prior_time = estimate_bounds(config, scene, run_dir, device)
@@ -355,8 +360,8 @@ def _run_neural(config, scene, run_dir: Path, device, run_start_wall: float) -> 
     except StageInterrupted as exc:
         return _print_interrupted(exc, run_dir)
     except KeyboardInterrupt:
-        console.print("[yellow]interrupted[/] outside a training loop")
-        console.print(f"resume with: kneas-train --resume {run_dir}")
+        say("[yellow]interrupted[/] outside a training loop")
+        say(f"resume with: kneas-train --resume {run_dir}")
         return EXIT_INTERRUPTED
     finally:
         if tb is not None:
@@ -364,8 +369,8 @@ def _run_neural(config, scene, run_dir: Path, device, run_start_wall: float) -> 
     try:
         metrics, proj, volume, eval_time = _evaluate(trainer.model, scene, model_cfg, device)
     except KeyboardInterrupt:
-        console.print(f"[yellow]interrupted during the evaluation[/]; training is complete (checkpoint {trainer.last_checkpoint})")
-        console.print(f"resume with: kneas-train --resume {run_dir}")
+        say(f"[yellow]interrupted during the evaluation[/]; training is complete (checkpoint {trainer.last_checkpoint})")
+        say(f"resume with: kneas-train --resume {run_dir}")
         return EXIT_INTERRUPTED
     if tb is not None:
         for k in ("psnr2d", "ssim2d", "psnr3d", "ssim3d"):
@@ -399,18 +404,18 @@ def train(config) -> int:
         saved = config_from_json(read_json(run_dir / "config.json", "run config"))
         config = dataclasses.replace(saved, resume=None, device=config.device)
         if (run_dir / "metrics.json").is_file():
-            console.print(f"run {run_dir} is already complete; nothing to resume")
+            say(f"run {run_dir} is already complete; nothing to resume")
             metrics = read_json(run_dir / "metrics.json", "metrics file")
             console.print(summary_table(metrics, title=f"{metrics.get('method')} on {metrics.get('scene')}"))
             return 0
-        console.print(f"resuming run {run_dir} ({config.method}, preset {config.preset}, seed {config.seed})")
+        say(f"resuming run {run_dir} ({config.method}, preset {config.preset}, seed {config.seed})")
         scene = load_scene(config)
     else:
         scene = load_scene(config)
         run_dir = create_run_dir(config.output_dir, scene.name, config.method)
         write_json(run_dir / "config.json", to_dict(config))
-        console.print(f"run folder: {run_dir}")
-    console.print(f"device: {device}; torch threads: {torch.get_num_threads()}")
+        say(f"run folder: {run_dir}")
+    say(f"device: {device}; torch threads: {torch.get_num_threads()}")
     if config.reconstructor == "fdk":
         return _run_fdk(config, scene, run_dir, device)
     return _run_neural(config, scene, run_dir, device, start)

@@ -233,6 +233,7 @@ class Trainer:
         self.model.train()
         progress = stage_progress(self.console)
         started = time.perf_counter()
+        first_step, t_begin = self.step, time.perf_counter()
         last_info = ""
         with progress, _DeferredInterrupt() as interrupt:
             task = progress.add_task(self.label, total=self.total_steps, completed=self.step, info="")
@@ -273,6 +274,13 @@ class Trainer:
                     if self.step % 5 == 0 or self.step == self.total_steps:
                         last_info = format_losses({k: v for k, v in values.items() if k != "total"})
                     progress.update(task, completed=self.step, info=last_info)
+                    if not progress.console.is_terminal and (self.step % max(1, self.total_steps // 10) == 0):
+                        # logs (no live bar): a plain line every 10 % of the stage
+                        done = self.step - first_step
+                        rate = done / max(time.perf_counter() - t_begin, 1e-9)
+                        eta = (self.total_steps - self.step) / max(rate, 1e-9)
+                        progress.console.print(f"{self.label} step {self.step}/{self.total_steps}: {rate:.2f} steps/s, "
+                                               f"eta {eta:.0f} s, {last_info}", soft_wrap=True)
                     if on_step is not None:
                         on_step(self.step)
                     epoch_done = self.step % self.steps_per_epoch == 0
