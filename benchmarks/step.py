@@ -11,7 +11,8 @@ front here, from the built-in foot scene, so only the model is timed), render
 exact eikonal on every sample, SPEC §3), ``backward``, and an Adam step with
 ``zero_grad``. Architecture: the paper's hash grid (14 levels x 2 features,
 2^19 entries, 12.2 M parameters), SDF MLP, shared attenuation body with K heads,
-soft selector (``--materials K``).
+soft selector (``--materials K``). ``--preset cpu`` times the cpu preset's
+smaller grid and eikonal fraction instead.
 
 Paths:
 
@@ -55,13 +56,15 @@ def build(args, mode: str, device: torch.device):
     reference = mode != "fast"
     from kneas_method import methods, presets
 
-    cfg = dataclasses.replace(methods.k_neas.config, preset="paper", num_materials=args.materials)
+    cfg = dataclasses.replace(methods.k_neas.config, preset=args.preset, num_materials=args.materials)
     cfg = presets.resolve(cfg)
+    preset_fraction = float(cfg.model.eikonal_fraction if cfg.model.eikonal_fraction is not None else 1.0)
+    fraction = preset_fraction if (reference or args.eikonal_fraction is None) else args.eikonal_fraction
     enc = dict(cfg.model.encoding_options)
     enc["implementation"] = "tcnn" if args.tcnn and not reference else "torch"
     model_cfg = dataclasses.replace(
         cfg.model, num_samples=args.samples, encoding_options=enc, reference=reference,
-        eikonal_mode="autograd" if reference else args.eikonal_mode, eikonal_fraction=1.0 if reference else args.eikonal_fraction,
+        eikonal_mode="autograd" if reference else args.eikonal_mode, eikonal_fraction=fraction,
     )
     torch.manual_seed(args.seed)
     model = model_cfg.setup(scale=args.scale, device=device).to(device)
@@ -115,7 +118,10 @@ def main(argv=None) -> int:
                          "(= the repository's code before the speed work); 'both' with --compare times all three")
     ap.add_argument("--eikonal-mode", default="autograd", choices=["autograd", "finite-difference"],
                     help="fast path: exact (forward-mode gradients) or finite differences")
-    ap.add_argument("--eikonal-fraction", type=float, default=1.0, help="fast path: fraction of samples with the eikonal term")
+    ap.add_argument("--preset", default="paper", choices=["paper", "cpu"],
+                    help="architecture + eikonal fraction: paper (14-level 2^19 grid, eikonal on every sample) or the cpu preset's")
+    ap.add_argument("--eikonal-fraction", type=float, default=None,
+                    help="fast path: fraction of samples with the eikonal term (default: the preset's; the reference always uses the preset's)")
     ap.add_argument("--optimizer", default="adam-fused", choices=["adam", "adam-fused", "adam-foreach"], help="fast path optimiser")
     ap.add_argument("--tcnn", action="store_true", help="fast path: tinycudann hash grid (CUDA; needs --eikonal-mode finite-difference)")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
@@ -151,7 +157,7 @@ def main(argv=None) -> int:
 
     result = {
         "benchmark": "step",
-        "rays": args.rays, "air_rays": n_rays - args.rays, "samples": args.samples, "materials": args.materials,
+        "preset": args.preset, "rays": args.rays, "air_rays": n_rays - args.rays, "samples": args.samples, "materials": args.materials,
         "samples_per_step": samples_per_step, "device": str(device),
         "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
                     "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
@@ -174,7 +180,8 @@ def main(argv=None) -> int:
         print(f"samples_per_s: {result[modes[0]]['samples_per_s']:.0f}")
     print(f"load average (1 min) at end: {os.getloadavg()[0]:.2f}; torch threads {torch.get_num_threads()}")
     suffix = "_compare" if args.compare else ("_reference" if args.reference else "")
-    out = Path(args.out) if args.out else HERE / "results" / f"step_{device.type}{suffix}.json"
+    tag = "" if args.preset == "paper" else f"_{args.preset}"
+    out = Path(args.out) if args.out else HERE / "results" / f"step_{device.type}{tag}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
     print(f"wrote {out}")

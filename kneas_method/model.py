@@ -300,9 +300,46 @@ class CTModel(nn.Module):
             distances=None if d is None else d.reshape(R, S, -1),
         )
 
+    def eval_bytes_per_sample(self) -> int:
+        """Rough peak bytes per sample point of a no-grad evaluation render (for chunk sizing).
+
+        Hash grid: the corner indices (int64) and gathered features of 8 corners on every
+        level, plus the lerp temporaries; the MLPs: a few 64-wide float32 rows."""
+        enc = getattr(self.field, "encoding", None)
+        levels = int(getattr(enc, "n_levels", 16))
+        feats = int(getattr(enc, "n_features", 2))
+        grid = levels * (8 * 8 * 2 + 8 * 4 * feats * 2 + 3 * 4 * 4)
+        return grid + 4 * 64 * (4 + max(1, self.num_materials))
+
+    def auto_chunk(self, n_samples: Optional[int] = None, device=None, fraction: float = 0.25,
+                   lo: int = 256, hi: int = 1 << 16) -> int:
+        """Rays per evaluation chunk from the memory available now: ``fraction`` of the free
+        CUDA memory (``torch.cuda.mem_get_info``) or of the host's ``MemAvailable``, divided
+        by :meth:`eval_bytes_per_sample` x samples per ray; clipped to ``[lo, hi]``."""
+        n = int(n_samples or self.config.num_eval_samples or 128)
+        device = torch.device(device) if device is not None else next(self.parameters()).device
+        free = None
+        if device.type == "cuda" and torch.cuda.is_available():
+            free = torch.cuda.mem_get_info(device)[0]
+        else:
+            try:
+                with open("/proc/meminfo") as fh:
+                    for line in fh:
+                        if line.startswith("MemAvailable:"):
+                            free = int(line.split()[1]) * 1024
+                            break
+            except OSError:
+                pass
+        if free is None:
+            return 4096
+        return int(min(hi, max(lo, fraction * free // (self.eval_bytes_per_sample() * n))))
+
     @torch.no_grad()
-    def render_chunked(self, origins, directions, near, far, chunk: int = 4096, n_samples: Optional[int] = None) -> RenderOutput:
-        """Evaluation render (even spacing, no grad) in chunks of ``chunk`` rays: intensity [R], line_integral [R]."""
+    def render_chunked(self, origins, directions, near, far, chunk: Optional[int] = None, n_samples: Optional[int] = None) -> RenderOutput:
+        """Evaluation render (even spacing, no grad) in chunks of ``chunk`` rays: intensity [R], line_integral [R].
+
+        ``chunk=None``: :meth:`auto_chunk` (from the memory available)."""
+        chunk = int(chunk or self.auto_chunk(n_samples, origins.device))
         parts = [self.render(origins[i : i + chunk], directions[i : i + chunk], near, far, n_samples, stratified=False) for i in range(0, len(origins), chunk)]
         return RenderOutput(torch.cat([p.intensity for p in parts]), torch.cat([p.line_integral for p in parts]))
 
