@@ -94,14 +94,14 @@ def read_run_config(run_dir: Path):
         raise KneasError(f"{path} has no 'method' entry; it is not a kneas run config")
     method = data["method"]
     specs = registry.methods()
-    if method == "fdk":
+    if method in specs:
+        base = dataclasses.replace(specs[method].config, method=method)
+    elif method == "fdk":  # an FDK run read by a kneas without the fdk method entry point
         from ..methods import TrainConfig
 
         base = TrainConfig(method="fdk")
         known = {f.name for f in dataclasses.fields(TrainConfig)}
         data = {k: v for k, v in data.items() if k in known}
-    elif method in specs:
-        base = dataclasses.replace(specs[method].config, method=method)
     else:
         raise KneasError(f"{path} is a run of method {method!r}, which is not installed here; installed: {', '.join(specs)}")
     return update_from_dict(base, data, where="config.json")
@@ -206,7 +206,7 @@ def load_run(
     if scene is not None:
         _check_same_box(config, sc, notes)
 
-    if config.method == "fdk":
+    if config.method == "fdk" or getattr(config, "reconstructor", "neural") == "fdk":
         vol_path = run_dir / "volume.npy"
         if not vol_path.is_file():
             raise KneasError(f"FDK run {run_dir} has no volume.npy; " + RESUME_HINT.format(run=run_dir))
