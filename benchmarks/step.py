@@ -53,18 +53,22 @@ HERE = Path(__file__).resolve().parent
 
 def build(args, mode: str, device: torch.device):
     """``mode``: ``fast``, ``reference`` (loop grid) or ``reference-vectorised-grid``."""
-    reference = mode != "fast"
+    reference = not mode.startswith("fast")
+    eik_mode, eik_fraction = args.eikonal_mode, args.eikonal_fraction
+    if mode.startswith("fast:"):  # a --variants entry "fast:<eikonal mode>:<fraction>"
+        _, eik_mode, frac = mode.split(":")
+        eik_fraction = float(frac)
     from kneas_method import methods, presets
 
     cfg = dataclasses.replace(methods.k_neas.config, preset=args.preset, num_materials=args.materials)
     cfg = presets.resolve(cfg)
     preset_fraction = float(cfg.model.eikonal_fraction if cfg.model.eikonal_fraction is not None else 1.0)
-    fraction = preset_fraction if (reference or args.eikonal_fraction is None) else args.eikonal_fraction
+    fraction = preset_fraction if (reference or eik_fraction is None) else eik_fraction
     enc = dict(cfg.model.encoding_options)
     enc["implementation"] = "tcnn" if args.tcnn and not reference else "torch"
     model_cfg = dataclasses.replace(
         cfg.model, num_samples=args.samples, encoding_options=enc, reference=reference,
-        eikonal_mode="autograd" if reference else args.eikonal_mode, eikonal_fraction=fraction,
+        eikonal_mode="autograd" if reference else eik_mode, eikonal_fraction=fraction, compile=args.compile and not reference,
     )
     torch.manual_seed(args.seed)
     model = model_cfg.setup(scale=args.scale, device=device).to(device)
@@ -122,8 +126,12 @@ def main(argv=None) -> int:
                     help="architecture + eikonal fraction: paper (14-level 2^19 grid, eikonal on every sample) or the cpu preset's")
     ap.add_argument("--eikonal-fraction", type=float, default=None,
                     help="fast path: fraction of samples with the eikonal term (default: the preset's; the reference always uses the preset's)")
+    ap.add_argument("--variants", default=None,
+                    help="extra fast-path variants timed interleaved with the others, e.g. "
+                         "'autograd:1.0,finite-difference:0.25' (eikonal mode:fraction)")
     ap.add_argument("--optimizer", default="adam-fused", choices=["adam", "adam-fused", "adam-foreach"], help="fast path optimiser")
     ap.add_argument("--tcnn", action="store_true", help="fast path: tinycudann hash grid (CUDA; needs --eikonal-mode finite-difference)")
+    ap.add_argument("--compile", action="store_true", help="fast path: torch.compile the fused SDF pass (opt-in; minutes to compile)")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=7)
@@ -142,6 +150,8 @@ def main(argv=None) -> int:
         modes = (["reference", "reference-vectorised-grid"] if args.reference_grid == "both" else [ref]) + ["fast"]
     else:
         modes = [ref] if args.reference else ["fast"]
+    if args.variants:
+        modes += [f"fast:{v}" for v in args.variants.split(",")]
     runs = {m: build(args, m, device) for m in modes}
     gens = {m: torch.Generator().manual_seed(args.seed + 1) for m in modes}
     times: dict[str, list[float]] = {m: [] for m in modes}
@@ -164,17 +174,17 @@ def main(argv=None) -> int:
                     "gpu": torch.cuda.get_device_name(0) if device.type == "cuda" else None,
                     "load_avg_1m": os.getloadavg()[0]},
         "fast_options": {"eikonal_mode": args.eikonal_mode, "eikonal_fraction": args.eikonal_fraction,
-                         "optimizer": args.optimizer, "tcnn": args.tcnn},
+                         "optimizer": args.optimizer, "tcnn": args.tcnn, "compile": args.compile},
         "warmup": args.warmup, "repeats": args.repeats,
     }
     for m in modes:
         med = statistics.median(times[m])
         result[m] = {"step_ms": 1e3 * med, "samples_per_s": samples_per_step / med, "all_ms": [1e3 * t for t in times[m]]}
         print(f"{m}: step_ms: {1e3 * med:.1f}  samples_per_s: {samples_per_step / med:.0f}")
-    if args.compare:
-        for m in modes[:-1]:
-            result[f"speedup_vs_{m}"] = result[m]["step_ms"] / result["fast"]["step_ms"]
-            print(f"speedup vs {m}: {result[f'speedup_vs_{m}']:.2f}x")
+    if args.compare or args.variants:
+        for m in [m for m in modes if m != "fast"]:
+            result[f"fast_speedup_vs_{m}"] = result[m]["step_ms"] / result["fast"]["step_ms"]
+            print(f"fast speedup vs {m}: {result[f'fast_speedup_vs_{m}']:.2f}x")
     else:
         print(f"step_ms: {result[modes[0]]['step_ms']:.1f}")
         print(f"samples_per_s: {result[modes[0]]['samples_per_s']:.0f}")

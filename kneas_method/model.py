@@ -102,6 +102,10 @@ class ModelConfig(InstantiateConfig):
             the default path, which with the torch hash grid and ``eikonal_mode``
             autograd gets the K distance gradients in forward mode from the
             render's own pass (``SDFField.forward_with_gradients``).
+        compile: ``torch.compile`` the fused SDF pass (values + distance gradients).
+            Opt-in: measured on 2 loaded CPU cores (cpu preset, 20,480 points) the
+            pass + its backward ran ~35 % faster, but compiling took ~3 minutes,
+            and it recompiles once per new batch size.
     """
 
     _target = "kneas_method.model:CTModel"
@@ -131,6 +135,7 @@ class ModelConfig(InstantiateConfig):
     eikonal_fd_step: Optional[float] = None
     lambda_eikonal: float = 0.01
     reference: bool = False
+    compile: bool = False
 
 
 def _finest_cell(encoding_cfg, bound: float) -> float:
@@ -200,6 +205,9 @@ class CTModel(nn.Module):
             if hasattr(ek_cfg, "fd_step"):
                 changes["fd_step"] = config.eikonal_fd_step
             self.eikonal = dataclasses.replace(ek_cfg, **changes).setup(default_step=_finest_cell(enc_cfg, self.bound))
+        self._forward_with_gradients = getattr(self.field, "forward_with_gradients", None)
+        if config.compile and self._forward_with_gradients is not None and not config.reference:
+            self._forward_with_gradients = torch.compile(self._forward_with_gradients)
         if config.reference:
             if hasattr(encoding, "reference"):
                 encoding.reference = True
@@ -253,7 +261,7 @@ class CTModel(nn.Module):
         if points_grad:
             flat = flat.detach().requires_grad_(True)
         if with_grads:  # distances, features and d distances / d x [P, K, 3] in one pass
-            distances, features, grads = self.field.forward_with_gradients(flat.detach())
+            distances, features, grads = self._forward_with_gradients(flat.detach())
             q = self._materials(distances, features)
             q["grads"] = grads
         else:
@@ -383,7 +391,7 @@ class CTModel(nn.Module):
                 n = max(1, int(round(frac * len(flat))))
                 idx = torch.randperm(len(flat), device="cpu", generator=generator)[:n].to(flat.device) if n < len(flat) else slice(None)
                 sub = flat[idx].detach()
-                grads = self.field.forward_with_gradients(sub)[2] if fused else None
+                grads = self._forward_with_gradients(sub)[2] if fused else None
                 eik = self.eikonal(self.field.distances, sub, None, mask=inside[idx], grads=grads)
             out["eikonal"] = cfg.lambda_eikonal * eik
         out["total"] = sum(out.values())
