@@ -133,3 +133,16 @@ def test_one_training_step_reduces_intensity_loss():
         loss["total"].backward()
         opt.step()
     assert loss["intensity"].item() < first
+
+
+def test_render_chunked_auto_chunk_matches_one_chunk():
+    model = model_of(methods.k_neas)
+    model.eval()
+    chunk = model.auto_chunk(16)
+    assert 256 <= chunk <= 1 << 16
+    assert model.eval_bytes_per_sample() > 0
+    b = batch()
+    whole = model.render_chunked(b["origins"], b["directions"], b["near"], b["far"], chunk=len(b["origins"]), n_samples=16)
+    auto = model.render_chunked(b["origins"], b["directions"], b["near"], b["far"], n_samples=16)
+    small = model.render_chunked(b["origins"], b["directions"], b["near"], b["far"], chunk=5, n_samples=16)
+    assert torch.allclose(whole.line_integral, auto.line_integral) and torch.allclose(whole.line_integral, small.line_integral, atol=1e-6)
