@@ -239,13 +239,22 @@ def estimate_bounds(config, scene, run_dir: Path, device) -> tuple[dict, float]:
     fit["units"] = "data units (1/m), the prior model's attenuation at the voxel centres"
     chosen = f"K = {gmm.n_components_} " + ("(given)" if n_comp is not None else "(BIC: " + ", ".join(f"K={k}: {v:.4g}" for k, v in sorted(gmm.bic_.items())) + ")")
     gmm.plot(run_dir / "figures" / "gmm_bounds.png", title=f"{scene.name}: GMM attenuation bounds ({config.bounds_method}), K = {gmm.n_components_}")
+    # sanity check: the largest measured line integral needs at least p_max / (longest chord) 1/m somewhere
+    hx, hy, hz = scene.geometry.volume_half_size
+    chord_m = 2.0 * float(np.sqrt(hx * hx + hy * hy + hz * hz)) / float(scene.geometry.scale)
+    mu_needed = float(np.max(np.asarray(scene.train.projections))) / chord_m
+    if float(gmm.boundaries_[-1]) < mu_needed:
+        gmm.warnings_.append(
+            f"the upper bound b_K = {float(gmm.boundaries_[-1]):.4g} 1/m cannot explain the largest measured line integral "
+            f"(it needs at least {mu_needed:.4g} 1/m along the longest chord): the NeAS-1M prior looks under-trained; "
+            "train it longer (--trainer.prior-epochs) or give --bounds")
     for w in gmm.warnings_:
         say(f"[yellow]bounds warning:[/] {w}")
     say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} prior voxel values, {chosen}; "
                   f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
     info = {"alphas": [float(v) for v in gmm.alphas_], "betas": [float(v) for v in gmm.betas_], "K": int(gmm.n_components_),
             "source": f"gmm ({config.bounds_method}) on the NeAS-1M prior", "k_chosen_by": "given" if n_comp is not None else "bic",
-            "prior_run": str(prior_dir), "prior_reused": reused, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
+            "prior_run": str(prior_dir), "prior_reused": reused, "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
     return info, prior_time
 
 
