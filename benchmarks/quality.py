@@ -139,6 +139,8 @@ def main(argv=None) -> int:
         "steps": args.steps, "eval_stride": args.eval_stride, "bounds": {"alphas": alphas, "betas": betas, "source": "GMM of the ground-truth volume"},
         "fast_options": {"eikonal_mode": fast_cfg.eikonal_mode or "autograd", "eikonal_fraction": fast_cfg.eikonal_fraction},
         "reference_options": {"eikonal_fraction": base.eikonal_fraction},
+        "resolved": {"encoding_options": dict(base.encoding_options), "num_samples": base.num_samples,
+                     "num_object_rays": cfg.datamanager.num_object_rays, "num_air_rays": cfg.datamanager.num_air_rays},
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                     "torch": torch.__version__, "load_avg_1m_at_end": os.getloadavg()[0]},
         "curves": {n: r["curve"] for n, r in runs.items()},

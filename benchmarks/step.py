@@ -153,6 +153,7 @@ def main(argv=None) -> int:
     if args.variants:
         modes += [f"fast:{v}" for v in args.variants.split(",")]
     runs = {m: build(args, m, device) for m in modes}
+    any_model = runs[modes[-1]][0]
     gens = {m: torch.Generator().manual_seed(args.seed + 1) for m in modes}
     times: dict[str, list[float]] = {m: [] for m in modes}
     for i in range(args.warmup + args.repeats):
@@ -176,6 +177,8 @@ def main(argv=None) -> int:
         "fast_options": {"eikonal_mode": args.eikonal_mode, "eikonal_fraction": args.eikonal_fraction,
                          "optimizer": args.optimizer, "tcnn": args.tcnn, "compile": args.compile},
         "warmup": args.warmup, "repeats": args.repeats,
+        "encoding_options": dict(any_model.config.encoding_options), "parameters": any_model.num_parameters(),
+        "eikonal_fraction_by_mode": {m: runs[m][0].config.eikonal_fraction for m in modes},
     }
     for m in modes:
         med = statistics.median(times[m])

@@ -31,6 +31,12 @@ config: forward ~0.1 s, forward+backward ~0.25 s, forward + ``grad(create_graph)
 + backward ~0.3 s (a per-level Python loop: ~0.77 s / ~0.89 s, mostly from
 zero-filling the 48 MB table gradient once per level).
 
+:meth:`HashGridEncoding.encode_with_jacobian` returns the features and their exact spatial
+Jacobian from the same gather (forward mode): the SDF field uses it to get all K distance
+gradients for the eikonal term with a first-order backward only (no double backward).
+:meth:`HashGridEncoding.encode_reference` is the straightforward per-level loop, kept as the
+benchmark reference (``reference = True``; ``benchmarks/step.py --reference``).
+
 tiny-cuda-nn
 ------------
 ``implementation="tcnn"`` wraps ``tinycudann.Encoding`` (imported only there).
