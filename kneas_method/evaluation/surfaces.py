@@ -242,6 +242,12 @@ def membership_grid(scene, geometry, chunk: int = 1_000_000) -> np.ndarray:
     units) from ``scene.membership``, in chunks."""
     if scene.membership is None:
         raise KneasError(f"scene {scene.name!r} has no exact membership function; surface metrics need a built-in scene")
+    name = scene.meta.get("phantom") if isinstance(scene.meta, dict) else None
+    if isinstance(name, str):  # built-in phantom: the same exact labels, on its fast rectilinear-grid path
+        from ..data.phantoms import PHANTOM_NAMES, get_phantom
+
+        if name in PHANTOM_NAMES:
+            return np.asarray(get_phantom(name).labels(geometry), dtype=np.uint8)
     xs, ys, zs = (a.numpy() for a in geometry.voxel_axes(dtype=torch.float64))
     out = np.empty((len(xs), len(ys), len(zs)), dtype=np.uint8)
     yy, zz = np.meshgrid(ys, zs, indexing="ij")
