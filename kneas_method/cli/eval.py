@@ -23,8 +23,8 @@ import time
 from pathlib import Path
 
 from ..errors import KneasError
-from .common import console, run_cli
-from .export import _device, output_folder
+from .common import run_cli
+from .export import _device, _say, output_folder
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -66,15 +66,15 @@ def _print(metrics: dict) -> None:
             ("psnr3d_ls", "3D PSNR, least-squares scaled"), ("ssim3d_ls", "3D SSIM, least-squares scaled")]
     for key, label in keys:
         if key in metrics:
-            console.print(f"  {label:42s} {metrics[key]:.4f}")
+            _say(f"  {label:42s} {metrics[key]:.4f}")
     mat = metrics.get("materials")
     if mat:
         match = ", ".join(f"{m['material']}->{m['gt_name']}" for m in mat["matching"])
-        console.print(f"  material matching (predicted -> ground truth): {match}")
+        _say(f"  material matching (predicted -> ground truth): {match}")
         for name, m in mat["materials"].items():
             ch = "-" if m.get("chamfer_mm") is None else f"{m['chamfer_mm']:.3f} mm"
             fs = "-" if m.get("fscore") is None else f"{m['fscore']:.3f}"
-            console.print(f"  {name:20s} Dice {m['dice']:.3f}   Chamfer {ch}   F@1voxel {fs}")
+            _say(f"  {name:20s} Dice {m['dice']:.3f}   Chamfer {ch}   F@1voxel {fs}")
 
 
 def main(argv=None) -> None:
@@ -96,9 +96,9 @@ def main(argv=None) -> None:
         device = _device(args.device)
         run = load_run(target, scene=args.scene, device=device)
         what = f"checkpoint {run.checkpoint_path} (step {run.step})" if run.checkpoint_path else "volume.npy"
-        console.print(f"evaluating {run.config.method} run {run.run_dir}: {what} on scene {run.scene.name} ({len(run.scene.val)} held-out views)")
+        _say(f"evaluating {run.config.method} run {run.run_dir}: {what} on scene {run.scene.name} ({len(run.scene.val)} held-out views)")
         for note in run.notes:
-            console.print(f"note: {note}")
+            _say(f"note: {note}")
         out = output_folder(run.run_dir, args.output, f"eval-{timestamp()}")
         t0 = time.perf_counter()
         metrics, proj, vol = evaluate_run(run, device=device, surfaces=not args.no_surfaces, grid_factor=args.grid_factor,
@@ -122,7 +122,7 @@ def main(argv=None) -> None:
             export_figures(run, out / "figures", views=args.figure_views if args.figure_views > 0 else 0,
                            projections=proj, volume=vol)
         _print(metrics)
-        console.print(f"wrote {out / 'metrics.json'}" + ("" if args.no_figures else f" and figures in {out / 'figures'}"))
+        _say(f"wrote {out / 'metrics.json'}" + ("" if args.no_figures else f" and figures in {out / 'figures'}"))
         return 0
 
     run_cli(body)

@@ -22,6 +22,13 @@ from ..errors import KneasError
 from .common import console, run_cli
 
 
+def _say(text: str) -> None:
+    """Print plain text (paths and notes may hold brackets, which rich would read as markup)."""
+    from rich.markup import escape
+
+    console.print(escape(str(text)))
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN_DIR", help="run folder (DIR/<scene>/<method>/<timestamp>) or a checkpoint file of it")
     p.add_argument("-o", "--output", metavar="DIR", default=None, help="output folder (default RUN_DIR/export/)")
@@ -90,9 +97,9 @@ def _load(args):
 
     run = load_run(args.run, scene=args.scene, device=_device(args.device))
     what = f"checkpoint {run.checkpoint_path}" + (f" (step {run.step})" if run.step is not None else "") if run.checkpoint_path else "volume.npy"
-    console.print(f"{run.config.method} run {run.run_dir}: {what}; scene {run.scene.name}")
+    _say(f"{run.config.method} run {run.run_dir}: {what}; scene {run.scene.name}")
     for note in run.notes:
-        console.print(f"note: {note}")
+        _say(f"note: {note}")
     return run
 
 
@@ -108,16 +115,16 @@ def _mesh(args) -> int:
     res = export_meshes(run, out, resolution=args.resolution, fmt=args.format, min_fragment=args.min_fragment,
                         thresholds=args.threshold, surface=args.surface, chunk=args.chunk)
     for note in res.notes:
-        console.print(f"note: {note}")
+        _say(f"note: {note}")
     nx, ny, nz = res.resolution
-    console.print(f"grid {nx} x {ny} x {nz} cells of {res.cell_mm[0]:.3g} x {res.cell_mm[1]:.3g} x {res.cell_mm[2]:.3g} mm; "
+    _say(f"grid {nx} x {ny} x {nz} cells of {res.cell_mm[0]:.3g} x {res.cell_mm[1]:.3g} x {res.cell_mm[2]:.3g} mm; "
                   f"iso-surfaces by {res.extractor or '-'}")
     for m in res.meshes + ([res.combined] if res.combined else []):
         if m.path is None:
-            console.print(f"  {m.name}: {m.note}")
+            _say(f"  {m.name}: {m.note}")
             continue
         dropped = f", dropped {m.dropped_components} fragment(s) / {m.dropped_triangles} triangles" if m.dropped_components else ""
-        console.print(f"  {m.name}: {m.vertices} vertices, {m.triangles} triangles, "
+        _say(f"  {m.name}: {m.vertices} vertices, {m.triangles} triangles, "
                       f"{'watertight' if m.watertight else 'not watertight'} [{m.watertight_check}]{dropped} -> {m.path}")
     info = res.to_dict()
     info.update(method=run.config.method, scene=run.scene.name, checkpoint=str(run.checkpoint_path) if run.checkpoint_path else None,
@@ -133,12 +140,12 @@ def _volume(args) -> int:
     out = output_folder(run.run_dir, args.output, "export")
     info = export_volume(run, out, thresholds=args.threshold, nifti=not args.no_nifti, chunk=args.chunk)
     for note in info["notes"]:
-        console.print(f"note: {note}")
+        _say(f"note: {note}")
     vx = ", ".join(f"{v:.4g}" for v in info["voxel_mm"])
     org = ", ".join(f"{v:.4g}" for v in info["origin_mm"])
-    console.print(f"volume {tuple(info['shape'])}, voxel ({vx}) mm, first voxel centre ({org}) mm")
+    _say(f"volume {tuple(info['shape'])}, voxel ({vx}) mm, first voxel centre ({org}) mm")
     for key, path in info["files"].items():
-        console.print(f"  {key}: {path}")
+        _say(f"  {key}: {path}")
     return 0
 
 
@@ -149,7 +156,7 @@ def _figures(args) -> int:
     out = output_folder(run.run_dir, args.output, "export")
     paths = export_figures(run, out, views=None if args.views == 0 else args.views, chunk=args.chunk)
     for p in paths:
-        console.print(f"  {p}")
+        _say(f"  {p}")
     return 0
 
 
