@@ -52,3 +52,17 @@ def test_figures_write_pngs(tmp_path):
     ]
     for p in outs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_error_keeps_brackets(capsys):
+    from kneas_method.cli.common import run_cli
+    from kneas_method.errors import missing_optional
+
+    def body():
+        raise missing_optional("open3d", "mesh", "mesh export")
+
+    with pytest.raises(SystemExit) as exit_info:
+        run_cli(body)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "pip install 'kneas[mesh]'" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

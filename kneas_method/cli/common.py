@@ -6,6 +6,7 @@ import sys
 from typing import Callable
 
 from rich.console import Console
+from rich.markup import escape
 
 from ..errors import KneasError
 
@@ -21,7 +22,7 @@ def run_cli(main: Callable[[], int | None]) -> None:
     try:
         code = main()
     except KneasError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", soft_wrap=True)
+        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
         sys.exit(EXIT_USER_ERROR)
     except KeyboardInterrupt:
         err_console.print("interrupted")
