@@ -80,6 +80,11 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
         inner = args[0] if args else Any
         items = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
+    if origin is dict or hint is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"config value {where} must be a mapping of settings, got {value!r}")
+        key_hint, value_hint = args if len(args) == 2 else (Any, Any)
+        return {_coerce(k, key_hint, f"{where} key"): _coerce(v, value_hint, f"{where}.{k}") for k, v in value.items()}
     if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"config value {where} must be true or false, got {value!r}")

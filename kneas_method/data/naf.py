@@ -132,11 +132,20 @@ def _fail(label: str, msg: str) -> SceneError:
     return SceneError(f"{label}: {msg}")
 
 
+def _show(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` on one line, cut to ``limit`` characters (arrays repr over several lines)."""
+    try:
+        text = " ".join(repr(value).split())
+    except Exception:  # a hostile or broken __repr__
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _positive_vector(d: dict, key: str, n: int, label: str, integer: bool) -> np.ndarray:
     try:
         arr = np.asarray(d[key], dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
-        raise _fail(label, f"{key} is {d[key]!r}; it must be {n} {'integers' if integer else 'numbers'}") from None
+        raise _fail(label, f"{key} is {_show(d[key])}; it must be {n} {'integers' if integer else 'numbers'}") from None
     if arr.size != n:
         raise _fail(label, f"{key} has {arr.size} entries; it must have {n}")
     if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
@@ -152,9 +161,9 @@ def _finite_vector(d: dict, key: str, n: int, label: str) -> np.ndarray:
     try:
         arr = np.asarray(d[key], dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
-        raise _fail(label, f"{key} is {d[key]!r}; it must be {n} numbers (mm)") from None
+        raise _fail(label, f"{key} is {_show(d[key])}; it must be {n} numbers (mm)") from None
     if arr.size != n or not np.all(np.isfinite(arr)):
-        raise _fail(label, f"{key} is {d[key]!r}; it must be {n} finite numbers (mm)")
+        raise _fail(label, f"{key} is {_show(d[key])}; it must be {n} finite numbers (mm)")
     return arr
 
 
@@ -162,9 +171,9 @@ def _positive_scalar(d: dict, key: str, label: str) -> float:
     try:
         arr = np.asarray(d[key], dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
-        raise _fail(label, f"{key} is {d[key]!r}; it must be a positive number (mm)") from None
+        raise _fail(label, f"{key} is {_show(d[key])}; it must be a positive number (mm)") from None
     if arr.size != 1 or not math.isfinite(float(arr[0])) or float(arr[0]) <= 0:
-        raise _fail(label, f"{key} is {d[key]!r}; it must be one finite positive number (mm)")
+        raise _fail(label, f"{key} is {_show(d[key])}; it must be one finite positive number (mm)")
     return float(arr[0])
 
 
@@ -240,8 +249,8 @@ def scene_from_dict(d: Any, label: str, *, name: str = "scene", source: str = ""
         if key not in d:
             raise _fail(label, f"key '{key}' is missing; a NAF scene needs {', '.join(REQUIRED_KEYS)}")
     mode = d["mode"]
-    if mode not in ("cone", "parallel"):
-        raise _fail(label, f"mode is {mode!r}; it must be 'cone' or 'parallel'")
+    if not isinstance(mode, str) or mode not in ("cone", "parallel"):
+        raise _fail(label, f"mode is {_show(mode)}; it must be 'cone' or 'parallel'")
     dsd = _positive_scalar(d, "DSD", label)
     dso = _positive_scalar(d, "DSO", label)
     n_det = _positive_vector(d, "nDetector", 2, label, integer=True).astype(np.int64)
