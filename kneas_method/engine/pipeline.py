@@ -417,6 +417,9 @@ def train(config) -> int:
             metrics = read_json(run_dir / "metrics.json", "metrics file")
             console.print(summary_table(metrics, title=f"{metrics.get('method')} on {metrics.get('scene')}"))
             return 0
+        from .run_dir import check_writable
+
+        check_writable(run_dir)  # a full or read-only run folder is reported before training resumes
         say(f"resuming run {run_dir} ({config.method}, preset {config.preset}, seed {config.seed})")
         scene = load_scene(config)
     else:

@@ -193,7 +193,14 @@ class Trainer:
             self._print(f"[red]not writing a checkpoint at step {self.step}: the model has non-finite parameters[/]; "
                         f"the last good one is {self.last_checkpoint}")
             return None
-        self.last_checkpoint = save_checkpoint(self.ckpt_dir, self.state(complete))
+        try:
+            path = save_checkpoint(self.ckpt_dir, self.state(complete))
+        except OSError as exc:  # disk full, folder gone or read-only: keep the last good one and say where it is
+            raise KneasError(
+                f"cannot write a checkpoint at step {self.step} in {self.ckpt_dir} ({exc.strerror or exc}); "
+                f"the last good checkpoint is {self.last_checkpoint or 'none (none was written yet)'}; "
+                f"free some space, then resume with: kneas-train --resume {self.run_dir}") from None
+        self.last_checkpoint = path
         return self.last_checkpoint
 
     # -------------------------------------------------------------- helpers
@@ -294,7 +301,11 @@ class Trainer:
                     if last or (epoch_done and ckpt_every and epoch % ckpt_every == 0) or interrupt.requested:
                         self.wall_time_s += time.perf_counter() - started
                         started = time.perf_counter()
-                        self.save(complete=last)
+                        if self.save(complete=last) is None and last:
+                            raise KneasError(
+                                f"the model has non-finite parameters at the end of the {self.label} stage (step {self.step}); "
+                                f"nothing was marked complete; the last good checkpoint is "
+                                f"{self.last_checkpoint or 'none (none was written yet)'}; lower the learning rate (--trainer.lr)")
                     if interrupt.requested and not last:
                         raise StageInterrupted(self.last_checkpoint, self.step)
             except KeyboardInterrupt:  # second Ctrl-C, mid-step: keep the last consistent checkpoint
