@@ -80,7 +80,8 @@ class ModelConfig(InstantiateConfig):
             (registered as ``attenuation-<name>``) or any registered name.
         selector: ``kneas.selectors`` name: ``soft`` or ``hard``.
         num_materials: K (signed distance fields / attenuation heads).
-        s_init: initial sharpness of ``Omega(d, s) = sigmoid(-s d)``.
+        s_init: initial sharpness of ``Omega(d, s) = sigmoid(-s d)`` (1/model unit);
+            None = the preset's (paper: 20).
         alphas, betas: attenuation bounds per material, data units (1/m); None =
             placeholders (NeAS wide bounds for K = 1) until ``set_bounds``.
         ray_sampler: ``kneas.samplers`` name of the ray sampler.
@@ -118,7 +119,7 @@ class ModelConfig(InstantiateConfig):
     selector: str = "soft"
     selector_options: Options = dataclasses.field(default_factory=dict)
     num_materials: int = 3
-    s_init: float = 20.0
+    s_init: Optional[float] = None
     alphas: Optional[tuple[float, ...]] = None
     betas: Optional[tuple[float, ...]] = None
     ray_sampler: str = "stratified"
@@ -176,7 +177,7 @@ class CTModel(nn.Module):
             self.selector = build_component("selectors", config.selector, config.selector_options).setup(num_materials=K)
             from .fields.sdf_field import SurfaceBoundary
 
-            self.boundary = SurfaceBoundary(config.s_init)
+            self.boundary = SurfaceBoundary(config.s_init if config.s_init is not None else 20.0)
             self.num_materials = K
             if config.alphas is not None or config.betas is not None:
                 if config.alphas is None or config.betas is None:

@@ -29,7 +29,7 @@ PAPER_HASHGRID = {"num_levels": 14, "features_per_level": 2, "log2_hashmap_size"
 TABLE: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {
         "hashgrid": PAPER_HASHGRID,
-        "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0},
+        "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0, "s_init": 20.0},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None},
     },
@@ -47,13 +47,13 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # met; see the training report.
     "cpu": {
         "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
-        "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0},
+        "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 8192, "eval_views": 3},
+        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3},
     },
     "tiny": {
         "hashgrid": {"num_levels": 3, "features_per_level": 2, "log2_hashmap_size": 10, "base_resolution": 4, "per_level_scale": 2.0},
-        "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0},
+        "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0, "s_init": 20.0},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2},
     },

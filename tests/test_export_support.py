@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import math
+
 import dataclasses
 import json
 from pathlib import Path
@@ -89,7 +91,7 @@ def exact_sphere_model(scene, shift_mm=(0.0, 0.0, 0.0), sharpness: float = 1e4):
     model.set_bounds([0.1, 0.1], [0.25, 0.75])
     model.field = AnalyticSDF(scene.geometry, model.field.feature_dim, shift_mm=shift_mm)
     with torch.no_grad():
-        model.boundary.s.fill_(sharpness)
+        model.boundary.log_s.fill_(math.log(sharpness) / model.boundary.LOG_SCALE)
     return model.eval()
 
 

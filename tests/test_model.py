@@ -121,7 +121,7 @@ def test_eikonal_in_model_matches_component_on_same_points():
 
 def test_one_training_step_reduces_intensity_loss():
     model = model_of(methods.neas_1m)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     b = batch()
     g = torch.Generator().manual_seed(0)
     first = None

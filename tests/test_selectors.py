@@ -34,7 +34,7 @@ def test_soft_weights_formula_bounds_and_gradients(K):
     assert torch.allclose(mu, (w * mu_bar).sum(-1))
     mu.sum().backward()
     assert d.grad is not None and d.grad.abs().sum() > 0
-    assert boundary.s.grad is not None and boundary.s.grad != 0
+    assert boundary.log_s.grad is not None and boundary.log_s.grad != 0
 
 
 def test_soft_single_material_is_neas():

@@ -9,6 +9,8 @@ sharpness ``s`` (initialised at 20), shared by all materials.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import torch
@@ -37,15 +39,17 @@ class SDFFieldConfig(InstantiateConfig):
         feature_dim: size of the feature vector ``f`` (paper: 8).
         bound: points are divided by this before encoding (model units; the
             scene fits the unit sphere, so 1.0).
-        distance_bias: initial bias of the distance outputs (model units); a
-            small positive value starts every material "outside" (``Omega < 0.5``).
+        distance_bias: initial bias of the distance outputs (model units). The
+            default 0.1 starts every material "outside" (``Omega < 0.5``), i.e. an
+            empty volume: most of a CT volume is air, and a field that starts
+            half-full puts haze where no object ray constrains it.
     """
 
     _target = "kneas_method.fields.sdf_field:SDFField"
     hidden_dim: int = 64
     feature_dim: int = 8
     bound: float = 1.0
-    distance_bias: float = 0.0
+    distance_bias: float = 0.1
 
 
 class SDFField(nn.Module):
@@ -128,12 +132,25 @@ class SDFField(nn.Module):
 class SurfaceBoundary(nn.Module):
     """``Omega(d, s) = sigmoid(-s * d)``: occupancy in (0, 1) from a signed distance.
 
-    One learnable scalar ``s`` (sharpness, 1/model unit), initialised at ``s_init``.
+    One learnable scalar sets the sharpness ``s`` (1/model unit), initialised at
+    ``s_init``. It is stored as ``log_s`` with ``s = exp(LOG_SCALE * log_s)`` (the
+    NeuS parametrisation of its inverse standard deviation), so an optimiser step
+    changes ``s`` by a relative amount: boundaries can sharpen from 20 to a few
+    hundred within a short schedule instead of creeping by ``lr`` per step.
     """
+
+    LOG_SCALE = 10.0
 
     def __init__(self, s_init: float = 20.0):
         super().__init__()
-        self.s = nn.Parameter(torch.tensor(float(s_init)))
+        if s_init <= 0:
+            raise ValueError(f"s_init must be positive, got {s_init}")
+        self.log_s = nn.Parameter(torch.tensor(math.log(float(s_init)) / self.LOG_SCALE))
+
+    @property
+    def s(self) -> torch.Tensor:
+        """The sharpness ``s`` (a 0-d tensor, differentiable)."""
+        return torch.exp(self.LOG_SCALE * self.log_s)
 
     def forward(self, distances: torch.Tensor) -> torch.Tensor:
         """distances [..., K] -> occupancies [..., K]."""
