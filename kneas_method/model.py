@@ -165,7 +165,9 @@ class CTModel(nn.Module):
         enc_cfg = build_component("fields", config.encoding, config.encoding_options)
         encoding = enc_cfg.setup(device=device) if device is not None else enc_cfg.setup()
         field_cfg = build_component("fields", config.field, config.field_options)
-        K = int(config.num_materials)
+        if not isinstance(config.num_materials, int) or isinstance(config.num_materials, bool):
+            raise ConfigError(f"model.num_materials is {config.num_materials!r}; give a whole number of materials (--num-materials K)")
+        K = config.num_materials
         self.field = field_cfg.setup(encoding=encoding, num_materials=K)
         self.has_sdf = bool(getattr(self.field, "has_sdf", False))
         self.bound = float(getattr(field_cfg, "bound", 1.0))
