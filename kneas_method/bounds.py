@@ -1,8 +1,10 @@
 """Per-material attenuation bounds ``(α_k, β_k)`` from a Gaussian mixture (SPEC §4).
 
-Units: every value here is an attenuation in **model units** (``mu_model``, 1/model
-unit; ``mu_data = mu_model · geometry.scale``), because ``α_k`` and ``β_k`` bound
-the model's raw attenuation ``μ̄_k = α_k · sigmoid(·) + β_k``. Sample the prior
+Units: every value here is an attenuation in the units of the model's attenuation
+output, which kneas keeps in **data units** (1/m, what the NAF volume stores; see
+``model.py``), because ``α_k`` and ``β_k`` bound the model's raw attenuation
+``μ̄_k = α_k · sigmoid(·) + β_k``. The mathematics is unit-free (values are
+rescaled internally before fitting). Sample the prior
 (NeAS-1M) model's ``mu`` at the voxel centres and pass those values to
 :meth:`GMMBounds.fit`.
 
@@ -52,7 +54,7 @@ _GRID = 4001
 
 @dataclass(frozen=True)
 class Bounds:
-    """Validated per-material bounds in model units.
+    """Validated per-material bounds in data units.
 
     Attributes:
         alphas: ``(α_1, ..., α_K)``, widths, > 0.
@@ -114,7 +116,7 @@ def _as_bounds(d) -> Bounds:
 
 def load_bounds(path) -> Bounds:
     """Read and validate a user-given bounds JSON file (``{"alphas": [...], "betas": [...]}``
-    or ``{"boundaries": [...]}``, model units), e.g. one written by ``GMMBounds.to_dict``."""
+    or ``{"boundaries": [...]}``, data units), e.g. one written by ``GMMBounds.to_dict``."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"bounds file {p} does not exist; give the path of a JSON file with 'alphas' and 'betas'")
@@ -135,7 +137,7 @@ class GMMBounds:
     Args:
         n_components: K to use; ``None`` picks K by the lowest BIC over 1..max_components.
         max_components: the largest K tried.
-        air_threshold: values ≤ this are air and dropped, model units; ``"auto"``
+        air_threshold: values ≤ this are air and dropped, data units; ``"auto"``
             uses ``DEFAULT_AIR_FRACTION`` (5 %) of the 99.5th percentile of all
             values (scale-free, so it works in any unit).
         upper_percentile, upper_factor: ``b_K = upper_factor × percentile``.
@@ -188,7 +190,7 @@ class GMMBounds:
         if not self.upper_factor > 0:
             raise ConfigError(f"upper_factor must be > 0, got {self.upper_factor}")
         if not (self.air_threshold == "auto" or isinstance(self.air_threshold, (int, float))):
-            raise ConfigError(f"air_threshold must be a number (model units) or 'auto', got {self.air_threshold!r}")
+            raise ConfigError(f"air_threshold must be a number (data units) or 'auto', got {self.air_threshold!r}")
 
     def get_params(self) -> dict:
         return {k: getattr(self, k) for k in ("n_components", "max_components", "air_threshold", "upper_percentile",
@@ -196,7 +198,7 @@ class GMMBounds:
 
     # ------------------------------------------------------------------ fit
     def fit(self, values) -> "GMMBounds":
-        """Fit on attenuation samples (any shape, numpy or torch), model units.
+        """Fit on attenuation samples (any shape, numpy or torch), data units.
 
         Raises:
             KneasError: when fewer than 50 values lie above the air threshold
@@ -325,7 +327,7 @@ class GMMBounds:
             raise KneasError("GMMBounds is not fitted yet; call fit(values) first")
 
     def density(self, x) -> np.ndarray:
-        """Mixture density at ``x`` (model units) -> same shape, 1/(model attenuation unit)."""
+        """Mixture density at ``x`` (data units) -> same shape, 1/(model attenuation unit)."""
         x = np.asarray(x, dtype=np.float64)
         return sum(w * _normal_pdf(x, m, s) for w, m, s in zip(self.weights_, self.means_, self.stds_))
 
@@ -337,7 +339,7 @@ class GMMBounds:
 
     def to_dict(self) -> dict:
         """JSON-able summary: K, alphas, betas, boundaries, bic, means, stds, weights,
-        warnings, settings (all attenuations in model units)."""
+        warnings, settings (all attenuations in data units)."""
         self._check_fitted()
         return {
             "K": int(self.n_components_),
@@ -349,7 +351,7 @@ class GMMBounds:
             "stds": [float(v) for v in self.stds_],
             "weights": [float(v) for v in self.weights_],
             "warnings": list(self.warnings_),
-            "units": "model units (mu_model = mu_data / geometry.scale)",
+            "units": "data units (1/m)",
             "settings": {**self.get_params(), "air_threshold_used": self.air_threshold_, "n_values": self.n_values_,
                          "n_kept": self.n_kept_},
         }
@@ -391,7 +393,7 @@ class GMMBounds:
             ax.plot(grid, w * _normal_pdf(grid, m, s), lw=1.2, ls="--", label=f"component {k + 1}")
         for k, b in enumerate(self.boundaries_):
             ax.axvline(b, color="tab:red", lw=1, alpha=0.8, label="boundaries $b_k$" if k == 0 else None)
-        ax.set_xlabel("attenuation (model units)")
+        ax.set_xlabel("attenuation (data units)")
         ax.set_ylabel("density")
         ax.set_title(title or f"GMM attenuation bounds ({self.method})")
         ax.legend(fontsize=7)
