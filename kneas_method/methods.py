@@ -131,7 +131,10 @@ def _config(method: str, *, K: int, attenuation: str = "shared", selector: str =
     return TrainConfig(
         method=method,
         bounds_source=bounds_source,
-        model=ModelConfig(field=field_name, attenuation=attenuation, selector=selector, num_materials=K, floater=floater),
+        model=ModelConfig(field=field_name, attenuation=attenuation, selector=selector, num_materials=K, floater=floater,
+                          # The hard selector gives d_2 no gradient where d_2 >= 0, so the inner
+                          # surface must start crossing the volume (no "start empty" bias).
+                          field_options={"distance_bias": 0.0} if selector == "hard" else {}),
     )
 
 
