@@ -111,3 +111,14 @@ def test_num_materials_override_and_errors():
     cfg = presets.resolve(dataclasses.replace(registry.load("methods", "neas-2m").config, preset="tiny"))
     with pytest.raises(ConfigError, match="only with K = 2"):
         dataclasses.replace(cfg.model, num_materials=3).setup()
+
+
+def test_neas_2m_and_k_neas_share_one_prior():
+    """NeAS-2M and K-NeAS are compared under the same bounds: the same prior config (hence key)."""
+    from kneas_method import presets
+    from kneas_method.engine.pipeline import prior_config
+    from kneas_method.methods import k_neas, neas_2m
+
+    a = prior_config(presets.resolve(dataclasses.replace(k_neas.config, preset="tiny")))
+    b = prior_config(presets.resolve(dataclasses.replace(neas_2m.config, preset="tiny")))
+    assert a.model == b.model and a.trainer == b.trainer and a.datamanager == b.datamanager

@@ -117,7 +117,7 @@ def prior_config(config):
     base = method_defaults(PRIOR_METHOD).model
     model = dataclasses.replace(
         config.model,
-        field=base.field, attenuation=base.attenuation, attenuation_options=dict(base.attenuation_options),
+        field=base.field, field_options=dict(base.field_options), attenuation=base.attenuation, attenuation_options=dict(base.attenuation_options),
         selector=base.selector, selector_options=dict(base.selector_options), num_materials=1,
         floater=False, alphas=None, betas=None,
     )
