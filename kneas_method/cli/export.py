@@ -78,18 +78,9 @@ def _device(name: str):
 
 def output_folder(run_dir: Path, output: Optional[str], default_name: str) -> Path:
     """``-o DIR`` or ``RUN_DIR/<default_name>``, created and checked writable."""
-    import os
-    import tempfile
+    from ..engine.run_dir import check_writable
 
-    folder = Path(output) if output else run_dir / default_name
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".kneas-write-test-", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise KneasError(f"output folder {folder} is not writable ({exc.strerror or exc}); choose another with -o DIR") from None
-    return folder
+    return check_writable(Path(output) if output else run_dir / default_name, needed_bytes=16 * 2**20, flag="-o DIR")
 
 
 def _load(args):

@@ -30,11 +30,12 @@ def timestamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
 
-def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES) -> Path:
+def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES, flag: str = "--output-dir") -> Path:
     """Create ``folder`` if needed and prove it is writable with enough free space.
 
     Raises:
-        KneasError: before any training starts, naming the folder and the fix.
+        KneasError: before any work starts, naming the folder and the fix
+        (``flag``: the option that chooses another folder).
     """
     folder = Path(folder)
     try:
@@ -43,12 +44,12 @@ def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES) -> Pa
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise KneasError(f"output folder {folder} is not writable ({exc.strerror or exc}); choose another with --output-dir") from None
+        raise KneasError(f"output folder {folder} is not writable ({exc.strerror or exc}); choose another with {flag}") from None
     free = shutil.disk_usage(folder).free
     if free < needed_bytes:
         raise KneasError(
             f"output folder {folder} has only {free / 2**20:.0f} MiB free, about {needed_bytes / 2**20:.0f} MiB are needed; "
-            "free some space or choose another folder with --output-dir"
+            f"free some space or choose another folder with {flag}"
         )
     return folder
 
