@@ -28,41 +28,23 @@ from ..methods import TrainConfig
 from .common import run_cli
 
 
-def _pop_resume(argv: list[str]) -> tuple[Optional[str], list[str]]:
-    """``--resume RUN_DIR`` -> (RUN_DIR, the other arguments)."""
-    out, path, i = [], None, 0
+def _pop_option(argv: list[str], name: str, example: str) -> tuple[Optional[str], list[str]]:
+    """``name VALUE`` or ``name=VALUE`` taken out of ``argv`` -> (VALUE or None, the other arguments)."""
+    out, value, i = [], None, 0
     while i < len(argv):
         a = argv[i]
-        if a == "--resume":
+        if a == name:
             if i + 1 >= len(argv):
-                raise ConfigError("--resume needs a run folder: --resume outputs/foot/k-neas/<timestamp>")
-            path = argv[i + 1]
+                raise ConfigError(f"{name} needs a value: {name} {example}")
+            value = argv[i + 1]
             i += 2
             continue
-        if a.startswith("--resume="):
-            path = a.split("=", 1)[1]
+        if a.startswith(name + "="):
+            value = a.split("=", 1)[1]
         else:
             out.append(a)
         i += 1
-    return path, out
-
-
-def _pop_config_file(argv: list[str]) -> tuple[Optional[str], list[str]]:
-    out, path, i = [], None, 0
-    while i < len(argv):
-        a = argv[i]
-        if a == "--config":
-            if i + 1 >= len(argv):
-                raise ConfigError("--config needs a file: --config path/to/config.json")
-            path = argv[i + 1]
-            i += 2
-            continue
-        if a.startswith("--config="):
-            path = a.split("=", 1)[1]
-        else:
-            out.append(a)
-        i += 1
-    return path, out
+    return value, out
 
 
 def load_config_file(path: str) -> dict:
@@ -84,8 +66,8 @@ def parse_args(argv: Sequence[str]) -> TrainConfig:
     import tyro
 
     argv = list(argv)
-    resume, argv = _pop_resume(argv)
-    config_file, argv = _pop_config_file(argv)
+    resume, argv = _pop_option(argv, "--resume", "outputs/foot/k-neas/<timestamp>")
+    config_file, argv = _pop_option(argv, "--config", "path/to/config.json")
     if resume is not None:
         run = Path(resume)
         if not (run / "config.json").is_file():

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import pickle
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..atomic import atomic_write
 from ..errors import SceneError
 from ..geometry import Geometry
 from .scene import Scene, Views
@@ -345,27 +344,10 @@ def scene_to_dict(scene: Scene) -> dict:
 
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temp file in the same folder + ``os.replace``)."""
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+        atomic_write(path, lambda handle: handle.write(data))
     except OSError as exc:
         raise SceneError(f"cannot write {path} ({exc.strerror or exc}); choose a writable output path") from None
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise SceneError(f"cannot write {path} ({exc.strerror or exc}); choose a writable output path") from None
-        raise
 
 
 def save_naf(scene: Scene, path) -> Path:
