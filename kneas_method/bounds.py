@@ -189,7 +189,8 @@ class GMMBounds:
             raise ConfigError(f"upper_percentile must be in (0, 100], got {self.upper_percentile}")
         if not self.upper_factor > 0:
             raise ConfigError(f"upper_factor must be > 0, got {self.upper_factor}")
-        if not (self.air_threshold == "auto" or isinstance(self.air_threshold, (int, float))):
+        if not (self.air_threshold == "auto" or (isinstance(self.air_threshold, (int, float, np.integer, np.floating))
+                                                 and not isinstance(self.air_threshold, bool))):
             raise ConfigError(f"air_threshold must be a number (data units) or 'auto', got {self.air_threshold!r}")
 
     def get_params(self) -> dict:

@@ -40,6 +40,8 @@ PRESETS = ("auto", "paper", "cpu", "tiny")
 BOUNDS_SOURCES = ("wide", "auto", "none")
 RECONSTRUCTORS = ("neural", "fdk")
 BOUNDS_METHODS = ("gmm", "quantile", "bayes")
+BOUNDS_VOLUMES = ("prior", "fdk")
+WARM_STARTS = ("none", "fdk")
 
 
 @dataclass
@@ -57,6 +59,15 @@ class TrainerConfig:
             checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
         eval_views: held-out views rendered at intermediate evaluations (None = all).
+        warm_start: ``none`` (the paper: train from the initialisation) or ``fdk``:
+            before projection training, fit the model to the run's FDK
+            reconstruction at the voxel centres (``Trainer.warm_start``), an
+            option beside the paper's procedure (SPEC §4). None = the preset's
+            (paper: none; cpu: fdk).
+        warm_start_steps: Adam steps of the warm start (None = the preset's).
+        warm_start_points: voxel centres per warm-start step.
+        warm_start_occupancy: weight of the warm start's per-material occupancy
+            cross-entropy (``CTModel.volume_loss_dict``; 0 = MSE only).
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -71,6 +82,10 @@ class TrainerConfig:
     checkpoint_every: Optional[int] = None
     eval_chunk: Optional[int] = None
     eval_views: Optional[int] = None
+    warm_start: Optional[str] = None
+    warm_start_steps: Optional[int] = None
+    warm_start_points: int = 16384
+    warm_start_occupancy: float = 0.01
     log_every: int = 50
     max_bad_steps: int = 5
 
@@ -97,6 +112,10 @@ class TrainConfig:
         fdk_filter: ramp-filter window of the FDK baseline (``ram-lak``, ``shepp-logan``, ``cosine``, ``hann``).
         bounds_method: GMM boundary rule for automatic bounds: ``gmm`` (paper, SPEC §4),
             ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
+        bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
+            (the paper: a trained NeAS-1M model, SPEC §4) or ``fdk`` (the FDK
+            reconstruction of the training views: no prior training; an option
+            beside the paper's procedure). None = the preset's (paper: prior; cpu: fdk).
         reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
             preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
         data_dir: where public benchmark pickles ``<name>_50.pickle`` are looked for.
@@ -118,6 +137,7 @@ class TrainConfig:
     reconstructor: str = "neural"
     fdk_filter: str = "ram-lak"
     bounds_method: str = "gmm"
+    bounds_volume: Optional[str] = None
     reuse_prior: bool = True
     data_dir: str = "data"
     resume: Optional[str] = None

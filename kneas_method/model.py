@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional, Sequence, Union
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from . import registry
@@ -29,6 +30,7 @@ from .errors import ConfigError
 from .renderer import RenderOutput, beer_lambert, sample_points, segment_lengths
 
 Options = dict[str, Union[int, float, str, bool]]
+PAPER_LAMBDA_EIKONAL = 0.01  # λ_reg of SPEC §3, used when the config leaves it unset
 
 
 def build_component(group: str, name: str, options: Optional[dict] = None, aliases: Sequence[str] = ()) -> InstantiateConfig:
@@ -89,7 +91,8 @@ class ModelConfig(InstantiateConfig):
             jittered) / evaluation (even); paper 320 / 128.
         floater: use the floater loss on air rays.
         floater_fraction: fraction of epochs with the floater loss on (0.2).
-        lambda_floater, lambda_eikonal: ``λ_aux`` (0.1), ``λ_reg`` (0.01).
+        lambda_floater, lambda_eikonal: ``λ_aux`` (0.1), ``λ_reg`` (paper 0.01; None =
+            the preset's: the cpu preset's short schedule uses a much smaller one).
         eikonal_mode: ``autograd`` (exact) or ``finite-difference``; None =
             autograd, or finite-difference with the tinycudann hash grid.
         eikonal_fraction: fraction of the training sample points the eikonal term
@@ -134,7 +137,7 @@ class ModelConfig(InstantiateConfig):
     eikonal_mode: Optional[str] = None
     eikonal_fraction: Optional[float] = None
     eikonal_fd_step: Optional[float] = None
-    lambda_eikonal: float = 0.01
+    lambda_eikonal: Optional[float] = None
     reference: bool = False
     compile: bool = False
 
@@ -195,7 +198,8 @@ class CTModel(nn.Module):
             fl_cfg = dataclasses.replace(fl_cfg, fraction=config.floater_fraction)
         self.floater_loss = fl_cfg.setup()
         self.eikonal = None
-        if self.has_sdf and config.lambda_eikonal > 0:
+        self.lambda_eikonal = PAPER_LAMBDA_EIKONAL if config.lambda_eikonal is None else float(config.lambda_eikonal)
+        if self.has_sdf and self.lambda_eikonal > 0:
             ek_cfg = build_component("losses", config.eikonal_loss)
             changes = {}
             tcnn = getattr(encoding, "implementation", "") == "tcnn"
@@ -355,6 +359,40 @@ class CTModel(nn.Module):
         return RenderOutput(torch.cat([p.intensity for p in parts]), torch.cat([p.line_integral for p in parts]))
 
     # ------------------------------------------------------------------ losses
+    def volume_loss_dict(self, points: torch.Tensor, targets: torch.Tensor, occupancy_weight: float = 0.0) -> dict[str, torch.Tensor]:
+        """Loss terms for fitting the field to a known attenuation volume (the warm start).
+
+        Args:
+            points: [P, 3] model units (voxel centres).
+            targets: [P] attenuation in data units at those points.
+            occupancy_weight: SDF models: weight of a binary cross-entropy between
+                each material's occupancy ``Omega(d_k, s)`` and "the target reaches
+                material k" (``target > beta_k``; for k = 1, ``> alpha_1 / 2``). Unlike
+                the MSE it keeps a gradient where ``Omega`` is saturated, so a thin
+                material (cortical shells) appears even from the start-empty init.
+
+        Returns ``volume`` (MSE of ``mu``), ``occupancy`` (when weighted), ``eikonal``
+        (SDF models, already times ``lambda_eikonal``) and ``total``.
+        """
+        fused = self.fused_eikonal
+        if fused:
+            distances, features, grads = self._forward_with_gradients(points.detach())
+            q = self._materials(distances, features)
+        else:
+            points = points.detach().requires_grad_(self.eikonal is not None)
+            q, grads = self.query(points), None
+        out = {"volume": torch.mean((q["mu"] - targets) ** 2)}
+        if occupancy_weight > 0 and self.has_sdf:
+            alphas, betas = self.attenuation.alphas, self.attenuation.betas
+            thresholds = torch.cat([alphas[:1] / 2, betas[1:]]).to(targets.dtype)
+            reached = (targets[:, None] > thresholds[None, :]).to(targets.dtype)
+            logits = -self.boundary.s * q["distances"]
+            out["occupancy"] = occupancy_weight * F.binary_cross_entropy_with_logits(logits, reached)
+        if self.eikonal is not None:
+            out["eikonal"] = self.lambda_eikonal * self.eikonal(self.field.distances, points, q.get("distances"), grads=grads)
+        out["total"] = sum(out.values())
+        return out
+
     def loss_dict(self, batch: dict[str, Any], progress: float, generator: Optional[torch.Generator] = None) -> dict[str, torch.Tensor]:
         """Weighted loss terms and ``total`` for one training batch.
 
@@ -396,6 +434,6 @@ class CTModel(nn.Module):
                 sub = flat[idx].detach()
                 grads = self._forward_with_gradients(sub)[2] if fused else None
                 eik = self.eikonal(self.field.distances, sub, None, mask=inside[idx], grads=grads)
-            out["eikonal"] = cfg.lambda_eikonal * eik
+            out["eikonal"] = self.lambda_eikonal * eik
         out["total"] = sum(out.values())
         return out

@@ -17,21 +17,24 @@ are merged key by key (user keys win).
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import torch
 
 from .errors import ConfigError
-from .methods import BOUNDS_METHODS, BOUNDS_SOURCES, PRESETS, RECONSTRUCTORS, TrainConfig
+from .methods import BOUNDS_METHODS, BOUNDS_SOURCES, BOUNDS_VOLUMES, PRESETS, RECONSTRUCTORS, WARM_STARTS, TrainConfig
 
 PAPER_HASHGRID = {"num_levels": 14, "features_per_level": 2, "log2_hashmap_size": 19, "base_resolution": 16, "per_level_scale": 2.0}
 
 TABLE: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {
         "hashgrid": PAPER_HASHGRID,
-        "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0, "s_init": 20.0},
+        "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0, "s_init": 20.0, "lambda_eikonal": 0.01},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
-        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None},
+        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None,
+                    "warm_start": "none", "warm_start_steps": 0},
+        "run": {"bounds_volume": "prior"},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
     # (finest resolution ~168 for the built-in 128^3 volumes), 256 + 64 rays x 64
@@ -45,15 +48,19 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # parameters (dense Adam every step) made the run too slow for the budget.
     "cpu": {
         "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
-        "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0},
+        "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3},
+        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3,
+                    "warm_start": "fdk", "warm_start_steps": 300},
+        "run": {"bounds_volume": "fdk"},
     },
     "tiny": {
         "hashgrid": {"num_levels": 3, "features_per_level": 2, "log2_hashmap_size": 10, "base_resolution": 4, "per_level_scale": 2.0},
-        "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0, "s_init": 20.0},
+        "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0, "s_init": 20.0, "lambda_eikonal": 0.01},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
-        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2},
+        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2,
+                    "warm_start": "none", "warm_start_steps": 5},
+        "run": {"bounds_volume": "prior"},
     },
 }
 
@@ -135,11 +142,41 @@ def resolve(config: TrainConfig) -> TrainConfig:
         model = dataclasses.replace(model, num_materials=K)
     elif model.field != "naf" and not k_is_chosen(dataclasses.replace(config, model=model)):
         K = model.num_materials
+    trainer = _fill(config.trainer, table["trainer"])
+    if trainer.warm_start not in WARM_STARTS:
+        raise ConfigError(f"trainer.warm_start {trainer.warm_start!r} is not known; use one of {', '.join(WARM_STARTS)}")
+    if not (isinstance(trainer.warm_start_steps, int) and trainer.warm_start_steps >= 0):
+        raise ConfigError(f"trainer.warm_start_steps must be a whole number >= 0, got {trainer.warm_start_steps!r}")
+    if not (isinstance(trainer.warm_start_points, int) and trainer.warm_start_points >= 1):
+        raise ConfigError(f"trainer.warm_start_points must be a whole number >= 1, got {trainer.warm_start_points!r}")
+    if not (isinstance(trainer.warm_start_occupancy, (int, float)) and not isinstance(trainer.warm_start_occupancy, bool)
+            and math.isfinite(trainer.warm_start_occupancy) and trainer.warm_start_occupancy >= 0):
+        raise ConfigError(f"trainer.warm_start_occupancy must be a number >= 0, got {trainer.warm_start_occupancy!r}")
+    bounds_volume = config.bounds_volume if config.bounds_volume is not None else table["run"]["bounds_volume"]
+    if bounds_volume not in BOUNDS_VOLUMES:
+        raise ConfigError(f"bounds_volume {bounds_volume!r} is not known; use one of {', '.join(BOUNDS_VOLUMES)}")
     return dataclasses.replace(
         config,
         preset=name,
+        bounds_volume=bounds_volume,
         num_materials=K,
         model=model,
         datamanager=_fill(config.datamanager, table["datamanager"]),
-        trainer=_fill(config.trainer, {k: v for k, v in table["trainer"].items()}),
+        trainer=trainer,
     )
+
+
+def procedure_notes(config: TrainConfig) -> list[str]:
+    """Lines saying where a resolved config leaves the paper's procedure (printed by ``kneas-train``)."""
+    notes = []
+    if config.reconstructor != "neural":
+        return notes
+    auto_bounds = (config.model.field != "naf" and config.bounds_source == "auto" and config.bounds is None
+                   and config.model.alphas is None)
+    if auto_bounds and config.bounds_volume == "fdk":
+        notes.append("bounds: the GMM is fitted on the FDK reconstruction, not on a trained NeAS-1M prior "
+                     "(an option beside the paper's procedure; --bounds-volume prior for the paper's)")
+    if config.trainer.warm_start == "fdk" and config.trainer.warm_start_steps:
+        notes.append(f"warm start: the model is first fitted to the FDK reconstruction for {config.trainer.warm_start_steps} steps "
+                     "(not in the paper; --trainer.warm-start none trains from the initialisation)")
+    return notes

@@ -115,6 +115,8 @@ def dry_run(config: TrainConfig) -> int:
     print(f"samples: {m.num_samples} train / {m.num_eval_samples} eval  rays: {config.datamanager.num_object_rays} object + {config.datamanager.num_air_rays} air  eikonal: {m.eikonal_mode or 'auto'} x{m.eikonal_fraction}")
     t = config.trainer
     print(f"trainer: epochs={t.epochs} prior_epochs={t.prior_epochs} lr={t.lr} decay x{t.lr_decay_factor} at {t.lr_decay_at:.0%}")
+    warm = f"fit to the FDK volume for {t.warm_start_steps} steps" if t.warm_start == "fdk" and t.warm_start_steps else "none (train from the initialisation)"
+    print(f"warm start: {warm}" + (f"  bounds volume: {config.bounds_volume}" if model.has_sdf and config.bounds_source == "auto" and not config.bounds else ""))
     print(f"parameters: {model.num_parameters():,}")
     return 0
 
@@ -143,6 +145,8 @@ def run(config: TrainConfig) -> int:
     _, reason = presets.choose(config.preset)
     config = presets.resolve(config)
     print(reason)
+    for note in presets.procedure_notes(config):
+        print(note)
     if config.dry_run:
         return dry_run(config)
     return train(config)

@@ -153,16 +153,49 @@ def _print_interrupted(exc: StageInterrupted, run_dir: Path) -> int:
 
 
 # -------------------------------------------------------------------- stages
-def _train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, label: str, tb=None) -> Trainer:
+def _train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, label: str, tb=None, warm_volume=None) -> Trainer:
+    """Build the stage's Trainer, resume it if it has checkpoints, else warm-start it from
+    ``warm_volume`` when given (``trainer.warm_start_steps`` steps), and train it."""
     trainer = Trainer(config, scene, run_dir, epochs=epochs, device=device, bounds=bounds, label=label, console=console,
                       tb=tb, tb_prefix=f"{label}/")
     path = trainer.resume()
     if path is not None:
         state = "complete" if trainer.complete else f"step {trainer.step}/{trainer.total_steps}"
         say(f"{label}: resuming from {path} ({state})")
+    elif warm_volume is not None and int(config.trainer.warm_start_steps or 0) > 0:
+        steps = int(config.trainer.warm_start_steps)
+        say(f"{label}: warm start: fitting the model to the FDK reconstruction for {steps} steps "
+            f"({config.trainer.warm_start_points:,} voxel centres each; --trainer.warm-start none trains from the initialisation, as the paper)")
+        seconds = trainer.warm_start(warm_volume, steps, int(config.trainer.warm_start_points),
+                                     occupancy_weight=float(config.trainer.warm_start_occupancy))
+        say(f"{label}: warm start done in {seconds:.1f} s")
     say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
     trainer.train()
     return trainer
+
+
+def fdk_volume(config, scene, run_dir: Path, device) -> tuple[np.ndarray, float]:
+    """The FDK reconstruction of the run's training views (data units), computed once per
+    run and kept as ``run_dir/fdk_volume.npy`` (reused on resume). Returns ``(volume, seconds)``."""
+    from ..evaluation.fdk import fdk_reconstruct
+
+    path, info_path = run_dir / "fdk_volume.npy", run_dir / "fdk_volume.json"
+    if path.is_file() and info_path.is_file():
+        try:
+            volume = np.load(path, allow_pickle=False)
+            if tuple(volume.shape) == tuple(scene.geometry.n_voxel):
+                return volume, float(read_json(info_path, "FDK volume info").get("seconds", 0.0))
+        except (OSError, ValueError, KneasError):
+            pass
+    t0 = time.perf_counter()
+    say(f"fdk: reconstructing {len(scene.train)} training views (filter {config.fdk_filter}) for the bounds / warm start")
+    volume = np.asarray(fdk_reconstruct(scene, filter=config.fdk_filter, device=device), dtype=np.float32)
+    from ..atomic import atomic_write
+
+    atomic_write(path, lambda fh: np.save(fh, volume))
+    seconds = time.perf_counter() - t0
+    write_json(info_path, {"seconds": seconds, "filter": config.fdk_filter, "views": len(scene.train)})
+    return volume, seconds
 
 
 def run_prior(config, scene, device) -> tuple[np.ndarray, Path, float, bool]:
@@ -230,13 +263,18 @@ def estimate_bounds(config, scene, run_dir: Path, device) -> tuple[dict, float]:
         a, b = default_bounds(int(m.num_materials))
         say("bounds: NeAS wide defaults")
         return {"alphas": a, "betas": b, "K": int(m.num_materials), "source": "wide (NeAS defaults)"}, 0.0
-    # automatic: prior + GMM (SPEC §4)
-    volume, prior_dir, prior_time, reused = run_prior(config, scene, device)
+    # automatic: GMM (SPEC §4) on the prior model's volume (the paper) or on the FDK reconstruction
+    if config.bounds_volume == "fdk":
+        volume, _ = fdk_volume(config, scene, run_dir, device)  # its time is reported as fdk_time_s
+        prior_time, prior_dir, reused, what = 0.0, None, False, "FDK"
+    else:
+        volume, prior_dir, prior_time, reused = run_prior(config, scene, device)
+        what = "NeAS-1M prior"
     n_comp = K if K is not None else None
     t0 = time.perf_counter()
     gmm = GMMBounds(n_components=n_comp, random_state=int(config.seed), method=config.bounds_method).fit(volume)
     fit = gmm.to_dict()
-    fit["units"] = "data units (1/m), the prior model's attenuation at the voxel centres"
+    fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     chosen = f"K = {gmm.n_components_} " + ("(given)" if n_comp is not None else "(BIC: " + ", ".join(f"K={k}: {v:.4g}" for k, v in sorted(gmm.bic_.items())) + ")")
     gmm.plot(run_dir / "figures" / "gmm_bounds.png", title=f"{scene.name}: GMM attenuation bounds ({config.bounds_method}), K = {gmm.n_components_}")
     # sanity check: the largest measured line integral needs at least p_max / (longest chord) 1/m somewhere
@@ -246,15 +284,15 @@ def estimate_bounds(config, scene, run_dir: Path, device) -> tuple[dict, float]:
     if float(gmm.boundaries_[-1]) < mu_needed:
         gmm.warnings_.append(
             f"the upper bound b_K = {float(gmm.boundaries_[-1]):.4g} 1/m cannot explain the largest measured line integral "
-            f"(it needs at least {mu_needed:.4g} 1/m along the longest chord): the NeAS-1M prior looks under-trained; "
-            "train it longer (--trainer.prior-epochs) or give --bounds")
+            f"(it needs at least {mu_needed:.4g} 1/m along the longest chord): the {what} volume looks too weak; "
+            + ("train the prior longer (--trainer.prior-epochs) or give --bounds" if what != "FDK" else "give --bounds or use --bounds-volume prior"))
     for w in gmm.warnings_:
         say(f"[yellow]bounds warning:[/] {w}")
-    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} prior voxel values, {chosen}; "
+    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} {what} voxel values, {chosen}; "
                   f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
     info = {"alphas": [float(v) for v in gmm.alphas_], "betas": [float(v) for v in gmm.betas_], "K": int(gmm.n_components_),
-            "source": f"gmm ({config.bounds_method}) on the NeAS-1M prior", "k_chosen_by": "given" if n_comp is not None else "bic",
-            "prior_run": str(prior_dir), "prior_reused": reused, "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
+            "source": f"gmm ({config.bounds_method}) on the {what}", "volume": config.bounds_volume, "k_chosen_by": "given" if n_comp is not None else "bic",
+            "prior_run": None if prior_dir is None else str(prior_dir), "prior_reused": reused, "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
     return info, prior_time
 
 
@@ -344,7 +382,7 @@ def _per_view(metrics: dict) -> dict:
 
 def _run_neural(config, scene, run_dir: Path, device, run_start_wall: float) -> int:
     tb = _tensorboard(run_dir)
-    prior_time = 0.0
+    prior_time = fdk_time = 0.0
     bounds = None
     info: dict = {}
     model_cfg = config
@@ -365,7 +403,13 @@ def _run_neural(config, scene, run_dir: Path, device, run_start_wall: float) -> 
             model_cfg = dataclasses.replace(config, num_materials=K, model=dataclasses.replace(config.model, num_materials=K))
             write_json(run_dir / "config.json", to_dict(model_cfg))  # the K actually trained
             bounds = (info["alphas"], info["betas"])
-        trainer = _train_stage(model_cfg, scene, run_dir, epochs=model_cfg.trainer.epochs, device=device, bounds=bounds, label="model", tb=tb)
+        warm = None
+        if config.trainer.warm_start == "fdk" or info.get("volume") == "fdk":  # computed once per run, cached in the run folder
+            warm, fdk_time = fdk_volume(config, scene, run_dir, device)
+            if config.trainer.warm_start != "fdk":
+                warm = None
+        trainer = _train_stage(model_cfg, scene, run_dir, epochs=model_cfg.trainer.epochs, device=device, bounds=bounds, label="model", tb=tb,
+                               warm_volume=warm)
     except StageInterrupted as exc:
         return _print_interrupted(exc, run_dir)
     except KeyboardInterrupt:
@@ -389,8 +433,9 @@ def _run_neural(config, scene, run_dir: Path, device, run_start_wall: float) -> 
     _figures(run_dir, scene, proj, volume, f"{config.method}, {scene.name}", trainer.history)
     out = {**_headline(metrics), "method": config.method, "scene": scene.name, "views": len(scene.train),
            "parameters": trainer.model.num_parameters(), "steps": trainer.step, "epochs": trainer.epochs,
-           "wall_time_s": trainer.wall_time_s + prior_time + eval_time, "train_time_s": trainer.wall_time_s,
-           "prior_time_s": prior_time, "eval_time_s": eval_time, "preset": config.preset, "scene_source": scene.source,
+           "wall_time_s": trainer.wall_time_s + trainer.warm_start_time_s + prior_time + fdk_time + eval_time,
+           "train_time_s": trainer.wall_time_s, "warm_start_time_s": trainer.warm_start_time_s, "warm_start": config.trainer.warm_start,
+           "prior_time_s": prior_time, "fdk_time_s": fdk_time, "eval_time_s": eval_time, "preset": config.preset, "scene_source": scene.source,
            "device": str(device), "bad_steps": len(trainer.bad_steps)}
     if trainer.model.has_sdf:
         out["num_materials"] = int(trainer.model.num_materials)

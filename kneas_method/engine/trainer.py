@@ -132,6 +132,7 @@ class Trainer:
         self.history: dict[str, list[list[float]]] = {}
         self.bad_steps: list[int] = []
         self.wall_time_s = 0.0
+        self.warm_start_time_s = 0.0
         self.last_checkpoint: Optional[Path] = None
         self.complete = False
 
@@ -153,6 +154,7 @@ class Trainer:
                 "history": self.history,
                 "bad_steps": list(self.bad_steps),
                 "wall_time_s": float(self.wall_time_s),
+                "warm_start_time_s": float(self.warm_start_time_s),
                 "num_materials": int(self.model.num_materials),
             },
         }
@@ -172,6 +174,7 @@ class Trainer:
         self.history = {k: [list(map(float, p)) for p in v] for k, v in extra.get("history", {}).items()}
         self.bad_steps = [int(s) for s in extra.get("bad_steps", [])]
         self.wall_time_s = float(extra.get("wall_time_s", 0.0))
+        self.warm_start_time_s = float(extra.get("warm_start_time_s", 0.0))
         self.complete = bool(extra.get("complete", False))
 
     def resume(self) -> Optional[Path]:
@@ -225,6 +228,50 @@ class Trainer:
         pred = render_views(self.model, self.scene, np.asarray(val.angles)[idx], device=self.device,
                             chunk=int(self.config.trainer.eval_chunk or 4096))
         return float(np.mean(psnr2d(pred, np.asarray(val.projections)[idx])))
+
+    # ----------------------------------------------------------- warm start
+    def warm_start(self, volume: np.ndarray, steps: int, points_per_step: int, what: str = "FDK",
+                   occupancy_weight: float = 0.0) -> float:
+        """Fit the fresh model to an attenuation ``volume`` (data units, the scene's voxel
+        grid; negative values clipped to 0) before projection training: ``steps`` Adam
+        steps at the trainer's learning rate, each on ``points_per_step`` random voxel
+        centres, loss = MSE of ``mu`` + ``occupancy_weight`` x the per-material occupancy
+        cross-entropy (``CTModel.volume_loss_dict``) + the model's eikonal term. Seeded from the run's
+        seed; leaves the training optimiser, sampler and RNG states untouched (so a
+        resumed run matches a straight one). Returns the wall time in seconds."""
+        if self.step != 0:
+            raise KneasError(f"the warm start runs before training, but the {self.label} stage is at step {self.step}")
+        if tuple(volume.shape) != tuple(self.scene.geometry.n_voxel):
+            raise KneasError(f"warm-start volume has shape {tuple(volume.shape)} but the scene's grid is "
+                             f"{tuple(self.scene.geometry.n_voxel)}; recompute it for this scene")
+        started = time.perf_counter()
+        points = self.scene.geometry.voxel_centres(device=self.device).reshape(-1, 3)
+        targets = torch.as_tensor(np.clip(np.asarray(volume, dtype=np.float32), 0.0, None), device=self.device).reshape(-1)
+        optimizer = torch.optim.Adam(self.model.parameters(), lr=float(self.config.trainer.lr))
+        gen = torch.Generator(device="cpu")
+        gen.manual_seed(int(self.config.seed) + 104729)
+        n = min(int(points_per_step), len(points))
+        self.model.train()
+        values: dict[str, float] = {}
+        with stage_progress(self.console) as progress:
+            task = progress.add_task(f"{self.label} warm start", total=int(steps), info=f"fit to the {what} volume")
+            for i in range(int(steps)):
+                idx = torch.randint(0, len(points), (n,), generator=gen).to(self.device)
+                losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=float(occupancy_weight))
+                optimizer.zero_grad(set_to_none=True)
+                if not torch.isfinite(losses["total"]):
+                    raise KneasError(f"non-finite loss in the warm start (step {i}); check the {what} volume or use --trainer.warm-start none")
+                losses["total"].backward()
+                optimizer.step()
+                if i % 10 == 0 or i == steps - 1:
+                    values = {k: float(v.detach()) for k, v in losses.items() if k != "total"}
+                    progress.update(task, completed=i + 1, info=format_losses(values))
+            progress.update(task, completed=int(steps))
+        self.model.zero_grad(set_to_none=True)
+        for k, v in values.items():
+            self._record(f"warm_start_{k}", v)
+        self.warm_start_time_s = time.perf_counter() - started
+        return self.warm_start_time_s
 
     # ----------------------------------------------------------------- loop
     def train(self, on_step: Optional[Callable[[int], None]] = None) -> None:

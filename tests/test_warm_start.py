@@ -1,0 +1,124 @@
+"""FDK bounds and the FDK warm start (options beside the paper's procedure; the cpu preset's defaults)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from kneas_method import presets, registry
+from kneas_method.data.naf import load_naf, save_naf
+from kneas_method.data.simulate import SimulationConfig, simulate_phantom
+from kneas_method.engine.evaluate import sample_volume
+from kneas_method.engine.trainer import Trainer
+from kneas_method.errors import ConfigError, KneasError
+from kneas_method.evaluation.metrics import psnr3d
+
+from test_pipeline import run, run_dir_of
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    path = tmp_path_factory.mktemp("scene") / "smallfoot.pickle"
+    cfg = SimulationConfig(n_voxel=24, voxel_mm=10.0, n_detector=24, n_train=8, n_val=4)
+    save_naf(simulate_phantom("foot", cfg), path)
+    return path
+
+
+def _tiny_config(method="k-neas", **trainer):
+    cfg = dataclasses.replace(registry.load("methods", method).config, method=method, preset="tiny")
+    cfg = dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, **trainer))
+    return presets.resolve(cfg)
+
+
+def test_warm_start_fits_the_volume_and_leaves_training_state_alone(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    cfg = _tiny_config()
+    target = np.asarray(scene.image, dtype=np.float32)
+    trainer = Trainer(cfg, scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    before = psnr3d(sample_volume(trainer.model, scene.geometry), target)
+    sampler = trainer.datamanager.state_dict()
+    gen = trainer.generator.get_state().clone()
+    opt_state = trainer.optimizer.state_dict()["state"]
+    seconds = trainer.warm_start(target - 0.05, steps=150, points_per_step=4096, what="test")  # negatives are clipped
+    after = psnr3d(sample_volume(trainer.model, scene.geometry), target)
+    assert after > before + 5.0, (before, after)
+    assert seconds > 0 and trainer.warm_start_time_s == seconds and trainer.step == 0
+    assert trainer.datamanager.state_dict()["position"] == sampler["position"]
+    assert torch.equal(trainer.generator.get_state(), gen) and opt_state == {} == trainer.optimizer.state_dict()["state"]
+    assert "warm_start_volume" in trainer.history
+    with pytest.raises(KneasError, match="grid"):
+        trainer.warm_start(target[:-1], steps=1, points_per_step=16)
+
+
+def test_warm_start_is_deterministic(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    cfg = _tiny_config()
+    vols = []
+    for i in range(2):
+        tr = Trainer(cfg, scene, tmp_path / str(i), epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+        tr.warm_start(np.asarray(scene.image), steps=5, points_per_step=512)
+        vols.append(sample_volume(tr.model, scene.geometry))
+    assert np.array_equal(vols[0], vols[1])
+
+
+def test_presets_fill_and_check_the_options():
+    cpu = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu"))
+    paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
+    assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("fdk", "fdk") and cpu.trainer.warm_start_steps > 0
+    assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
+    assert len(presets.procedure_notes(cpu)) == 2 and presets.procedure_notes(paper) == []
+    with pytest.raises(ConfigError, match="warm_start"):
+        _tiny_config(warm_start="gt")
+    with pytest.raises(ConfigError, match="bounds_volume"):
+        presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="tiny", bounds_volume="truth"))
+
+
+def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
+    outdir = tmp_path / "out"
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(outdir),
+                          "--bounds-volume", "fdk", "--trainer.warm-start", "fdk", "--trainer.warm-start-steps", "20"], capsys)
+    assert code == 0, err
+    assert "GMM is fitted on the FDK reconstruction" in out and "warm start: the model is first fitted" in out
+    assert "prior: training" not in out and "on the FDK" in out and "model: warm start done" in out
+    run_dir = run_dir_of(out)
+    assert not (outdir / "smallfoot" / "neas-1m-prior").exists()  # no prior model was trained
+    bounds = json.loads((run_dir / "bounds.json").read_text())
+    assert bounds["volume"] == "fdk" and "FDK" in bounds["source"] and bounds["prior_run"] is None
+    fdk = np.load(run_dir / "fdk_volume.npy")
+    assert fdk.shape == (24, 24, 24) and np.isfinite(fdk).all()
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["warm_start"] == "fdk" and metrics["warm_start_time_s"] > 0 and metrics["fdk_time_s"] > 0
+    parts = metrics["train_time_s"] + metrics["warm_start_time_s"] + metrics["fdk_time_s"] + metrics["eval_time_s"] + metrics["prior_time_s"]
+    assert metrics["wall_time_s"] == pytest.approx(parts)
+    # the same data and schedule from scratch: the warm start must not be worse on the volume
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"),
+                          "--bounds-volume", "fdk", "--trainer.warm-start", "none"], capsys)
+    assert code == 0, err
+    cold = json.loads((run_dir_of(out) / "metrics.json").read_text())
+    assert cold["warm_start_time_s"] == 0 and metrics["psnr3d"] > cold["psnr3d"]
+
+
+def test_occupancy_term_gives_a_gradient_where_omega_is_saturated():
+    """A material that starts far "outside" (Omega ~ 0) gets no MSE gradient; the occupancy
+    cross-entropy still pulls its distance down where the target reaches its bounds."""
+    cfg = _tiny_config()
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, s_init=100.0, field_options={"distance_bias": 1.0}))
+    model = cfg.model.setup(scale=1.0)
+    model.set_bounds([0.4, 0.3, 0.4], [0.0, 0.4, 0.7])
+    points = torch.rand(256, 3) - 0.5
+    targets = torch.full((256,), 0.9)  # the third material everywhere
+    last = model.field.mlp[-1].bias
+
+    def grad_of(weight):
+        model.zero_grad()
+        losses = model.volume_loss_dict(points, targets, occupancy_weight=weight)
+        losses["total"].backward()
+        return losses, last.grad[:3].clone()
+
+    losses, g_mse = grad_of(0.0)
+    assert "occupancy" not in losses and g_mse.abs().max() < 1e-12
+    losses, g_occ = grad_of(0.01)
+    assert float(losses["occupancy"]) > 0
+    assert (g_occ > 1e-4).all()  # every material's distance is pushed down (inside): the target reaches all three
