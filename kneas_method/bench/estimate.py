@@ -10,18 +10,19 @@ How a cell's cost is estimated (printed with the dry run):
    views x (epochs + prior epochs), one step per training projection per epoch
    (SPEC §3); the prior single-material model (SPEC §4) is trained only by
    methods with automatic bounds (neas-2m, kselector*, k-neas), not by neas-1m
-   or naf. Epochs come from the preset (``presets.TABLE``); extra
-   ``--trainer.epochs`` / ``--trainer.prior-epochs`` arguments are honoured.
-   FDK costs only the overhead.
+   or naf, and only when the preset fits the bounds on a prior (``paper``,
+   ``tiny``; the ``cpu`` preset fits them on FDK). Epochs come from the preset
+   (``presets.TABLE``); extra ``--trainer.epochs`` / ``--trainer.prior-epochs``
+   arguments are honoured. FDK costs only the overhead.
 
 Where the figures come from (torch 2.13 CPU, 2 cores shared with other work,
 so pessimistic): ``tiny`` from the first real ``kneas-bench table1 --preset
 tiny`` cells (``train_time_s / steps`` = 0.038 s per step, evaluation and start-up
 ~60 s per run, at load ~10); ``cpu`` and ``paper`` from timing single k-neas
 (K = 2) training steps (forward, eikonal, backward, Adam) on the built-in foot
-scene at load ~3.5: cpu 1.5 s (1.1-2.9 s; measured before the cpu preset was
-retuned to 6 levels), paper 13 s (10.6-15.8 s). Their per-run overheads are
-guesses, not measurements. No GPU was available: GPU rows are ``None`` and
+scene at load ~3.5: paper 13 s (10.6-15.8 s); ``cpu`` from a quiet
+``kneas-train k-neas --scene foot`` (5.6 steps/s; FDK + warm start +
+evaluation ~3 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
 the estimate says so; a first completed cell then calibrates rule 1.
 """
 
@@ -40,7 +41,7 @@ DEFAULT_VIEWS = 50
 # seconds per training step, by (preset, device kind). None = not measured.
 SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
     ("tiny", "cpu"): 0.04,
-    ("cpu", "cpu"): 1.5,
+    ("cpu", "cpu"): 0.18,
     ("paper", "cpu"): 13.0,
     ("tiny", "gpu"): None,
     ("cpu", "gpu"): None,
@@ -48,7 +49,7 @@ SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
 }
 # fixed per-run overhead in seconds (interpreter + torch import, scene load or
 # simulation, evaluation on the held-out views, volume metrics, figures), by preset.
-OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 180.0, "paper": 300.0}
+OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 190.0, "paper": 300.0}
 FDK_S = 10.0
 PRIOR_METHODS_NO = ("neas-1m", "naf", "fdk")
 
@@ -76,7 +77,8 @@ def training_steps(cell: Cell, preset: str) -> int:
     prior = _extra_int(cell.extra, "--trainer.prior-epochs", "--trainer.prior_epochs")
     prior = table["prior_epochs"] if prior is None else prior
     views = cell.views or DEFAULT_VIEWS
-    return views * (epochs + (0 if cell.method in PRIOR_METHODS_NO else prior))
+    uses_prior = cell.method not in PRIOR_METHODS_NO and presets.TABLE[preset]["run"]["bounds_volume"] == "prior"
+    return views * (epochs + (prior if uses_prior else 0))
 
 
 def device_kind() -> str:
