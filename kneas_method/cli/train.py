@@ -158,3 +158,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
 
 
 __all__ = ["main", "parse_args", "run", "dry_run", "to_dict"]
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -71,6 +71,12 @@ def plot_projection_comparison(pred, gt, path: str | Path, title: str = "") -> P
     return Path(path)
 
 
+def middle_slices(vol: np.ndarray):
+    """The three orthogonal middle slices of ``vol [nx, ny, nz, ...]`` and their axis names."""
+    cx, cy, cz = (s // 2 for s in vol.shape[:3])
+    return (vol[cx, :, :], vol[:, cy, :], vol[:, :, cz]), ("x", "y", "z")
+
+
 def plot_slice_comparison(pred, gt, path: str | Path, title: str = "") -> Path:
     """Three orthogonal middle slices: prediction, ground truth (if any), error.
 
@@ -86,9 +92,8 @@ def plot_slice_comparison(pred, gt, path: str | Path, title: str = "") -> Path:
     fig, axes = plt.subplots(len(vols), 3, figsize=(10, 3.3 * len(vols)), squeeze=False)
     hi = float(max(v.max() for n, v in vols if n != "error")) or 1.0
     for row, (name, vol) in enumerate(vols):
-        cx, cy, cz = (s // 2 for s in vol.shape)
-        slices = (vol[cx, :, :], vol[:, cy, :], vol[:, :, cz])
-        for col, (sl, axis) in enumerate(zip(slices, ("x", "y", "z"))):
+        slices, names = middle_slices(vol)
+        for col, (sl, axis) in enumerate(zip(slices, names)):
             ax = axes[row, col]
             if name == "error":
                 m = float(np.abs(vol).max()) or 1.0

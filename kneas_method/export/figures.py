@@ -18,12 +18,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..engine.figures import _plt, plot_projection_comparison, plot_slice_comparison
-
-
-def _middle_slices(vol: np.ndarray):
-    cx, cy, cz = (s // 2 for s in vol.shape[:3])
-    return (vol[cx, :, :], vol[:, cy, :], vol[:, :, cz]), ("x", "y", "z")
+from ..engine.figures import _plt, middle_slices, plot_projection_comparison, plot_slice_comparison
 
 
 def plot_weight_maps(weights: np.ndarray, path, title: str = "") -> Path:
@@ -32,7 +27,7 @@ def plot_weight_maps(weights: np.ndarray, path, title: str = "") -> Path:
     K = weights.shape[-1]
     fig, axes = plt.subplots(K, 3, figsize=(10, 3.2 * K), squeeze=False)
     for k in range(K):
-        slices, names = _middle_slices(weights[..., k])
+        slices, names = middle_slices(weights[..., k])
         for col, (sl, axis) in enumerate(zip(slices, names)):
             ax = axes[k, col]
             im = ax.imshow(sl.T, cmap="magma", vmin=0.0, vmax=1.0, origin="lower")
@@ -52,7 +47,7 @@ def plot_label_maps(pred: np.ndarray, gt: Optional[np.ndarray], path, title: str
     top = max(int(np.max(v)) for _, v in rows) if rows else 1
     fig, axes = plt.subplots(len(rows), 3, figsize=(10, 3.3 * len(rows)), squeeze=False)
     for r, (name, vol) in enumerate(rows):
-        slices, names = _middle_slices(vol)
+        slices, names = middle_slices(vol)
         for col, (sl, axis) in enumerate(zip(slices, names)):
             ax = axes[r, col]
             ax.imshow(sl.T, cmap="tab10", vmin=0, vmax=max(9, top), origin="lower", interpolation="nearest")
