@@ -29,11 +29,15 @@ def only_run_dir(parent: Path) -> Path:
     return runs[0]
 
 
-def test_interrupt_then_resume_matches_straight_run(tmp_path):
+@pytest.mark.parametrize("procedure", [
+    [],  # the paper's: prior -> GMM -> model
+    ["--bounds-volume", "fdk", "--trainer.warm-start", "fdk", "--trainer.warm-start-steps", "10"],  # the cpu preset's
+], ids=["prior-bounds", "fdk-bounds-warm-start"])
+def test_interrupt_then_resume_matches_straight_run(tmp_path, procedure):
     scene = tmp_path / "tinyfoot.pickle"
     save_naf(simulate_phantom("foot", SimulationConfig(n_voxel=16, voxel_mm=15.0, n_detector=16, n_train=4, n_val=4)), scene)
     common = ["k-neas", "--scene", str(scene), "--preset", "tiny", "--seed", "3", "--trainer.epochs", "12",
-              "--trainer.checkpoint-every", "1", "--trainer.eval-every", "4"]
+              "--trainer.checkpoint-every", "1", "--trainer.eval-every", "4", *procedure]
 
     # straight run
     straight = kneas_train([*common, "--output-dir", str(tmp_path / "a")])
