@@ -21,8 +21,8 @@ tiny`` cells (``train_time_s / steps`` = 0.038 s per step, evaluation and start-
 ~60 s per run, at load ~10); ``cpu`` and ``paper`` from timing single k-neas
 (K = 2) training steps (forward, eikonal, backward, Adam) on the built-in foot
 scene at load ~3.5: paper 13 s (10.6-15.8 s); ``cpu`` from a quiet
-``kneas-train k-neas --scene foot`` (5.6 steps/s; FDK + warm start +
-evaluation ~3 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
+``kneas-train k-neas --scene foot`` (6.3 steps/s; FDK + warm start +
+evaluation + start-up ~2.7 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
 the estimate says so; a first completed cell then calibrates rule 1.
 """
 
@@ -41,7 +41,7 @@ DEFAULT_VIEWS = 50
 # seconds per training step, by (preset, device kind). None = not measured.
 SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
     ("tiny", "cpu"): 0.04,
-    ("cpu", "cpu"): 0.18,
+    ("cpu", "cpu"): 0.16,
     ("paper", "cpu"): 13.0,
     ("tiny", "gpu"): None,
     ("cpu", "gpu"): None,
@@ -49,7 +49,7 @@ SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
 }
 # fixed per-run overhead in seconds (interpreter + torch import, scene load or
 # simulation, evaluation on the held-out views, volume metrics, figures), by preset.
-OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 190.0, "paper": 300.0}
+OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 165.0, "paper": 300.0}
 FDK_S = 10.0
 PRIOR_METHODS_NO = ("neas-1m", "naf", "fdk")
 
