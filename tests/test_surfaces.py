@@ -116,3 +116,18 @@ def test_no_labels_is_a_user_error(scene):
     bare = dataclasses.replace(scene, labels=None, membership=None)
     with pytest.raises(KneasError, match="ground-truth labels"):
         material_metrics(exact_sphere_model(scene), bare)
+
+
+def test_matching_uses_the_reconstructed_attenuation_not_the_raw_head():
+    """Hard selector: mu = mu_1 * Omega(d_1) can reach soft tissue (0.28) with a raw head at 0.5
+    and a half-occupied material; matching must follow what the model reconstructs."""
+    from kneas_method.evaluation.surfaces import match_materials, material_mean_attenuation
+
+    labels = np.array([1, 1, 1, 2, 2, 0])
+    heads = np.array([[0.5, 0.9]] * 6)
+    weights = np.array([[0.56, 0.0]] * 3 + [[0.0, 1.0]] * 2 + [[0.1, 0.0]])
+    mu = np.array([0.28, 0.28, 0.28, 0.9, 0.9, 0.05])
+    levels = [0.28, 0.5, 0.9]
+    assert match_materials(material_mean_attenuation(heads, weights, labels), levels) == [2, 3]  # raw heads: marrow
+    mean = material_mean_attenuation(heads, weights, labels, mu=mu)
+    assert np.allclose(mean, [0.28, 0.9]) and match_materials(mean, levels) == [1, 3]

@@ -17,9 +17,11 @@ or 0 (air) where the total weight ``Σ_k w_k`` is below ``air_threshold`` (0.5).
 (ground truth) may differ, so each predicted material ``k`` is assigned to the
 ground-truth label ``m in 1..M`` whose attenuation level (data units; the
 phantom's levels, or the mean ground-truth image over each label) is nearest to
-the material's *mean predicted attenuation*: the mean of ``mu_materials[:, k]``
-over the voxels labelled ``k``, or, when no voxel is, over the voxels where
-``w_k`` is largest among materials, or else over all voxels. Several predicted
+the material's *mean predicted attenuation*: the mean of the model's ``mu`` over
+the voxels labelled ``k`` (what it reconstructs where material ``k`` wins; for
+the hard selector ``mu_1 Omega(d_1)`` this differs from the raw head value), or,
+when no voxel is, the mean of the raw head ``mu_materials[:, k]`` over the
+voxels where ``w_k`` is largest among materials, or else over all voxels. Several predicted
 materials may map to one ground-truth label (their regions are merged); a
 ground-truth label no material maps to gets Dice 0 and no predicted surface.
 The report also holds the overlap (Dice) matrix of every predicted material
@@ -178,14 +180,26 @@ def gt_levels(scene) -> np.ndarray:
     return np.array([float(scene.image[scene.labels == m].mean()) if (scene.labels == m).any() else np.nan for m in range(1, M + 1)])
 
 
-def material_mean_attenuation(mu_materials: np.ndarray, weights: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """Mean predicted attenuation per material [K] (data units); see the module docs."""
+def material_mean_attenuation(mu_materials: np.ndarray, weights: np.ndarray, labels: np.ndarray,
+                              mu: Optional[np.ndarray] = None) -> np.ndarray:
+    """Mean predicted attenuation per material [K] (data units); see the module docs.
+
+    With ``mu`` (the model's attenuation, the selector's output): the mean of ``mu``
+    over the points labelled k, i.e. what the model reconstructs where material k
+    wins. This matters for the hard selector, whose ``mu = mu_1 Omega(d_1)`` can
+    reach a level with a partly occupied material (raw head value x occupancy).
+    Materials labelled nowhere fall back to the raw head ``mu_materials[..., k]``
+    where k has the largest weight, then everywhere."""
     K = mu_materials.shape[-1]
     mm = mu_materials.reshape(-1, K)
     lab = labels.reshape(-1)
     top = np.argmax(weights.reshape(-1, K), -1)
+    flat_mu = None if mu is None else np.asarray(mu).reshape(-1)
     out = np.empty(K)
     for k in range(K):
+        if flat_mu is not None and (lab == k + 1).any():
+            out[k] = float(flat_mu[lab == k + 1].mean())
+            continue
         for sel in (lab == k + 1, top == k, slice(None)):
             vals = mm[sel, k]
             if vals.size:
@@ -305,7 +319,7 @@ def material_metrics(
     if scene.labels is None:
         raise KneasError(f"scene {scene.name!r} has no ground-truth labels; material metrics need a built-in scene")
     geo = scene.geometry
-    q = query_grid(model, geo, keys=("weights", "mu_materials"), chunk=chunk)
+    q = query_grid(model, geo, keys=("mu", "weights", "mu_materials"), chunk=chunk)
     if "weights" not in q:
         raise KneasError("the model's query gives no material weights; it has no materials")
     pred = labels_from_weights(q["weights"], air_threshold)
@@ -313,7 +327,7 @@ def material_metrics(
     levels = gt_levels(scene)
     M = len(levels)
     names = list(scene.materials) if len(scene.materials) == M else [f"label {m}" for m in range(1, M + 1)]
-    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], pred)
+    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], pred, mu=q.get("mu"))
     matching = match_materials(mean_mu, levels)
     mapped = map_labels(pred, matching)
     gt = np.asarray(scene.labels)
@@ -325,7 +339,7 @@ def material_metrics(
                              "predicted_materials": [k + 1 for k in range(K) if matching[k] == m]}
     result: dict[str, Any] = {
         "definition": "labels: 1+argmax weight, air where total weight < air_threshold; predicted material k -> GT label with the "
-                      "nearest attenuation level to its mean predicted attenuation; surfaces: visible-region SDF e_k = "
+                      "nearest attenuation level to the mean predicted attenuation mu where it is the label; surfaces: visible-region SDF e_k = "
                       "max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm",
         "air_threshold": float(air_threshold),
         "grid_factor": int(factor),
