@@ -62,23 +62,25 @@ def test_disk_full_mid_run_keeps_last_good_checkpoint_and_says_where(tiny_scene,
     assert json.loads((run_dir / "metrics.json").read_text())["steps"] == 12
 
 
-def test_resume_into_full_folder_reported_before_training(tiny_scene, tmp_path, capsys, monkeypatch):
+def _finished_run_without_metrics(tiny_scene, tmp_path, capsys):
+    """A one-epoch k-neas run whose metrics.json is removed (so --resume has work to do)."""
     code, out, err = run(["k-neas", "--scene", str(tiny_scene), *ARGS, "--trainer.epochs", "1",
                           "--bounds-source", "wide", "--output-dir", str(tmp_path / "o")], capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
     (run_dir / "metrics.json").unlink()
+    return run_dir
+
+
+def test_resume_into_full_folder_reported_before_training(tiny_scene, tmp_path, capsys, monkeypatch):
+    run_dir = _finished_run_without_metrics(tiny_scene, tmp_path, capsys)
     monkeypatch.setattr(run_dir_mod.shutil, "disk_usage", lambda p: type("U", (), {"free": 1 << 20})())
     code, out, err = run(["--resume", str(run_dir)], capsys)
     assert code == 2 and "MiB free" in err and "resuming run" not in out
 
 
 def test_foreign_checkpoints_in_a_run_folder_refused(tiny_scene, tmp_path, capsys, monkeypatch):
-    code, out, err = run(["k-neas", "--scene", str(tiny_scene), *ARGS, "--trainer.epochs", "1",
-                          "--bounds-source", "wide", "--output-dir", str(tmp_path / "o")], capsys)
-    assert code == 0, err
-    run_dir = run_dir_of(out)
-    (run_dir / "metrics.json").unlink()
+    run_dir = _finished_run_without_metrics(tiny_scene, tmp_path, capsys)
     ck = run_dir / "checkpoints"
     state = torch.load(list_checkpoints(ck)[-1], weights_only=True)
     # another method's checkpoint, newer than ours: refused, naming both methods, never skipped silently

@@ -15,12 +15,17 @@ from kneas_method.errors import KneasError
 METRIC_KEYS = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_ls", "parameters", "steps", "wall_time_s", "preset", "scene_source")
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    path = tmp_path_factory.mktemp("scene") / "tinyfoot.pickle"
-    cfg = SimulationConfig(n_voxel=16, voxel_mm=15.0, n_detector=16, n_train=4, n_val=4)
+def simulated_foot(folder, name: str, n: int, voxel_mm: float, n_train: int, n_val: int = 4):
+    """The built-in foot phantom simulated at n^3 voxels / n^2 detector, saved as ``folder/name.pickle``."""
+    path = folder / f"{name}.pickle"
+    cfg = SimulationConfig(n_voxel=n, voxel_mm=voxel_mm, n_detector=n, n_train=n_train, n_val=n_val)
     save_naf(simulate_phantom("foot", cfg), path)
     return path
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return simulated_foot(tmp_path_factory.mktemp("scene"), "tinyfoot", 16, 15.0, n_train=4)
 
 
 def run(argv, capsys):

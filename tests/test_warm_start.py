@@ -8,22 +8,18 @@ import pytest
 import torch
 
 from kneas_method import presets, registry
-from kneas_method.data.naf import load_naf, save_naf
-from kneas_method.data.simulate import SimulationConfig, simulate_phantom
+from kneas_method.data.naf import load_naf
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.engine.trainer import Trainer
 from kneas_method.errors import ConfigError, KneasError
 from kneas_method.evaluation.metrics import psnr3d
 
-from test_pipeline import run, run_dir_of
+from test_pipeline import run, run_dir_of, simulated_foot
 
 
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory):
-    path = tmp_path_factory.mktemp("scene") / "smallfoot.pickle"
-    cfg = SimulationConfig(n_voxel=24, voxel_mm=10.0, n_detector=24, n_train=8, n_val=4)
-    save_naf(simulate_phantom("foot", cfg), path)
-    return path
+    return simulated_foot(tmp_path_factory.mktemp("scene"), "smallfoot", 24, 10.0, n_train=8)
 
 
 def _tiny_config(method="k-neas", **trainer):
