@@ -10,11 +10,14 @@ import torch
 from kneas_method.cli import export as export_cli
 from kneas_method.engine.loading import convert_hash_tables, load_run
 from kneas_method.errors import KneasError
+from kneas_method.export.mesh import import_open3d
 from kneas_method.export.volume import volume_affine
-from test_export_support import sphere_scene_file, write_fdk_run, write_run
 
-o3d = pytest.importorskip("open3d")  # CI installs it (.ci/run: .[dev,mesh,nifti] + libusb)
-nib = pytest.importorskip("nibabel")
+from conftest import sphere_scene_file, write_fdk_run, write_run
+
+import nibabel as nib  # noqa: E402  (the [nifti] extra, part of the test install)
+
+o3d = import_open3d()  # the [mesh] extra, part of the test install; libusb from PyPI's libusb-package
 
 
 @pytest.fixture(scope="module")
@@ -162,6 +165,19 @@ def test_mesh_user_errors(files, tmp_path, capsys):
 
 
 def test_missing_open3d_is_one_line(monkeypatch):
+    import importlib.util
+
+    from kneas_method.export import mesh as mesh_mod
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
+    with pytest.raises(KneasError, match=r"pip install 'kneas\[mesh\]'"):
+        mesh_mod.import_open3d()
+
+
+def test_open3d_that_cannot_load_names_the_real_cause(monkeypatch):
+    """open3d installed, but its import fails on libusb with no libusb to load: the error says so
+    (not "open3d is not installed") and names the pip fix."""
     import builtins
 
     from kneas_method.export import mesh as mesh_mod
@@ -169,13 +185,37 @@ def test_missing_open3d_is_one_line(monkeypatch):
     real = builtins.__import__
 
     def fake(name, *a, **kw):
-        if name == "open3d" or name.startswith("open3d."):
-            raise ImportError("no open3d")
+        if name == "open3d":
+            raise ImportError("libusb-1.0.so.0: cannot open shared object file: No such file or directory")
         return real(name, *a, **kw)
 
     monkeypatch.setattr(builtins, "__import__", fake)
-    with pytest.raises(KneasError, match=r"pip install 'kneas\[mesh\]'"):
+    monkeypatch.setattr(mesh_mod, "load_libusb", lambda: None)
+    with pytest.raises(KneasError) as exc:
         mesh_mod.import_open3d()
+    msg = str(exc.value)
+    assert "installed but cannot load" in msg and "libusb-1.0.so.0" in msg and "pip install libusb-package" in msg
+    assert "\n" not in msg
+
+
+def test_libusb_comes_from_pypi_when_the_system_has_none(monkeypatch):
+    """The loading path open3d needs on a machine without the system library: libusb-package's copy."""
+    import ctypes
+
+    from kneas_method.export import mesh as mesh_mod
+
+    real = ctypes.CDLL
+    loaded = []
+
+    def cdll(name, *a, **kw):
+        if name == mesh_mod.LIBUSB_SONAME:  # no system libusb
+            raise OSError(f"{name}: cannot open shared object file")
+        loaded.append(name)
+        return real(name, *a, **kw)
+
+    monkeypatch.setattr(ctypes, "CDLL", cdll)
+    where = mesh_mod.load_libusb()
+    assert where is not None and where != "system" and where.endswith(".so") and loaded == [where]
 
 
 # ------------------------------------------------------------------- volumes

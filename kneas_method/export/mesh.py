@@ -51,14 +51,52 @@ DEFAULT_MIN_FRAGMENT = 64.0
 SURFACES = ("raw", "visible")
 
 
+LIBUSB_SONAME = "libusb-1.0.so.0"
+
+
+def load_libusb() -> Optional[str]:
+    """Make ``libusb-1.0`` (which open3d's Linux wheel links against) loadable without root:
+    when the system has none, load the copy PyPI's ``libusb-package`` ships (part of
+    ``kneas[mesh]``) with ``RTLD_GLOBAL``, so open3d's import finds it by its soname.
+
+    Returns where libusb comes from (``"system"``, the package's file path), or None when
+    neither is there (open3d's import then names the missing library)."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return "system"
+    try:
+        ctypes.CDLL(LIBUSB_SONAME, mode=ctypes.RTLD_GLOBAL)
+        return "system"
+    except OSError:
+        pass
+    try:
+        import libusb_package
+    except ImportError:
+        return None
+    path = libusb_package.get_library_path()
+    if path is None:
+        return None
+    ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
+    return str(path)
+
+
 def import_open3d():
-    """open3d, or a one-line KneasError with the install hint."""
+    """open3d (with libusb loaded first, :func:`load_libusb`), or a one-line KneasError
+    naming what is missing and how to get it with pip."""
+    import importlib.util
+
+    if importlib.util.find_spec("open3d") is None:
+        raise missing_optional("open3d", "mesh", "mesh export")
+    libusb = load_libusb()
     try:
         import open3d as o3d
-    except ImportError:
-        raise missing_optional("open3d", "mesh", "mesh export") from None
-    except OSError as exc:  # e.g. libusb-1.0 missing
-        raise KneasError(f"open3d is installed but cannot load ({exc}); on Debian/Ubuntu install its system library with: apt-get install libusb-1.0-0") from None
+    except (ImportError, OSError) as exc:
+        cause = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        hint = ("libusb-1.0 is missing: install it with pip install libusb-package (part of pip install 'kneas[mesh]')"
+                if "libusb" in cause and libusb is None else "reinstall it with pip install --force-reinstall open3d")
+        raise KneasError(f"open3d is installed but cannot load ({cause}); {hint}") from None
     return o3d
 
 
@@ -254,7 +292,7 @@ def sample_fields(run, resolution: int = DEFAULT_RESOLUTION, *, surface: str = "
             return grid, vol[..., None], "attenuation"
         return geo, vol[..., None], "attenuation"
     grid, _ = grid_points(geo, resolution=resolution)
-    if getattr(run.model, "has_sdf", False):
+    if run.has_surfaces:
         d = query_grid(run.model, grid, keys=("distances",), chunk=chunk)["distances"]
         return grid, (visible_fields(d) if surface == "visible" else d), "sdf"
     mu = query_grid(run.model, grid, keys=("mu",), chunk=chunk)["mu"]
