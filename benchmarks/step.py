@@ -19,7 +19,7 @@ Paths:
 - default (fast): vectorised hash grid; the K distance gradients in forward mode
   from the render's own pass (``SDFField.forward_with_gradients``: no double
   backward); masked eikonal mean without boolean indexing; fused Adam (``--optimizer``).
-- ``--reference`` (the straightforward implementation, ``ModelConfig.reference``):
+- ``--reference`` (the straightforward implementation, ``benchmarks/naive.py``):
   the hash grid as a per-level Python loop with 8 gathers per level; the eikonal by
   K separate ``autograd.grad(d_k.sum(), x, create_graph=True)`` double backwards on
   every sample; ``torch.optim.Adam`` with its default (single-tensor, dense) update.
@@ -67,13 +67,15 @@ def build(args, mode: str, device: torch.device):
     enc = dict(cfg.model.encoding_options)
     enc["implementation"] = "tcnn" if args.tcnn and not reference else "torch"
     model_cfg = dataclasses.replace(
-        cfg.model, num_samples=args.samples, encoding_options=enc, reference=reference,
+        cfg.model, num_samples=args.samples, encoding_options=enc,
         eikonal_mode="autograd" if reference else eik_mode, eikonal_fraction=fraction, compile=args.compile and not reference,
     )
     torch.manual_seed(args.seed)
     model = model_cfg.setup(scale=args.scale, device=device).to(device)
-    if mode == "reference-vectorised-grid":
-        model.field.encoding.reference = False  # the repository's code before the speed work
+    if reference:  # the straightforward implementation (benchmarks/naive.py); "vectorised": the code before the speed work
+        from naive import make_reference
+
+        make_reference(model, grid="vectorised" if mode == "reference-vectorised-grid" else "loop")
     model.train()
     if reference or args.optimizer == "adam":
         opt = torch.optim.Adam(model.parameters(), lr=1e-3)

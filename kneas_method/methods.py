@@ -1,12 +1,20 @@
-"""The run configuration tree and the method table of SPEC §6.
+"""The run configuration trees and the method table of SPEC §6.
 
-``TrainConfig`` is the complete, JSON-round-trippable configuration of a run
-(``config.to_dict`` -> JSON -> ``config.update_from_dict``). Settings left at
-``None`` are decided by the preset (``presets.resolve``); anything set
-explicitly (command line, JSON) wins over the preset.
+Two kinds of run, each a config tree of its own and a pipeline of its own
+(nerfstudio's pipeline config per kind of method):
 
-Each method is a :class:`~kneas_method.registry.MethodSpecification`
-registered under ``kneas.methods`` in ``pyproject.toml``; they differ only in
+* :class:`TrainConfig` (neural methods: model, datamanager, trainer, bounds) ->
+  :class:`~kneas_method.engine.neural_pipeline.NeuralPipeline`;
+* :class:`ClassicalConfig` (FDK and the iterative methods of SPEC §7, 0 parameters) ->
+  :class:`~kneas_method.engine.classical_pipeline.ClassicalPipeline`.
+
+Both share :class:`RunConfig` (scene, views, preset, seed, device, folders) and
+round-trip through JSON (``config.to_dict`` -> JSON -> ``config.update_from_dict``).
+Settings left at ``None`` are decided by the preset (``presets.resolve``);
+anything set explicitly (command line, JSON) wins over the preset.
+
+Each method is a :class:`~kneas_method.registry.MethodSpecification` registered
+under ``kneas.methods`` in ``pyproject.toml``; the neural ones differ only in
 configuration:
 
 | method | K | attenuation | selector | floater | bounds |
@@ -18,30 +26,32 @@ configuration:
 | kselector-shared | K (3) | shared | soft | off | automatic or given |
 | k-neas | K (3) | shared | soft | on | automatic or given |
 | naf | — | NAF field (hash grid + MLP, no SDF) | — | off | — |
-| fdk | — | FDK / FBP reconstruction (``reconstructor="fdk"``), no model | — | — | — |
+| fdk | — | classical: FDK / FBP, no model | — | — | — |
 
 K of the K-material methods (kselector*, k-neas) is picked by BIC from the GMM
-fit on the prior (SPEC §4) when ``num_materials`` is None (the default) and the
-bounds are automatic; ``--num-materials K`` fixes it; a ``--bounds`` file gives it.
-The method's ``model.num_materials`` (3) is only the default shown by a dry run.
+fit (SPEC §4) when ``num_materials`` is None (the default) and the bounds are
+automatic; ``--num-materials K`` fixes it; a ``--bounds`` file gives it. The
+method's ``model.num_materials`` (3) is only the default shown by a dry run.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Literal, Optional
 
+from .classical.options import Algorithm, ReconstructionOptions
+from .config import InstantiateConfig
 from .datamanagers.ct import CTDataManagerConfig
 from .model import ModelConfig
 from .registry import MethodSpecification
 
-PRESETS = ("auto", "paper", "cpu", "tiny")
-BOUNDS_SOURCES = ("wide", "auto", "none")
-RECONSTRUCTORS = ("neural", "fdk")
-BOUNDS_METHODS = ("gmm", "quantile", "bayes")
-BOUNDS_VOLUMES = ("prior", "fdk")
-WARM_STARTS = ("none", "fdk")
+Preset = Literal["auto", "paper", "cpu", "tiny"]
+BoundsSource = Literal["wide", "auto", "none"]
+BoundsMethod = Literal["gmm", "quantile", "bayes"]
+BoundsVolume = Literal["prior", "fdk"]
+WarmStart = Literal["none", "fdk"]
+PRESETS: tuple[str, ...] = Preset.__args__
 
 
 @dataclass
@@ -59,9 +69,9 @@ class TrainerConfig:
             checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
         eval_views: held-out views rendered at intermediate evaluations (None = all).
-        warm_start: ``none`` (the paper: train from the initialisation) or ``fdk``:
-            before projection training, fit the model to the run's FDK
-            reconstruction at the voxel centres (``Trainer.warm_start``), an
+        warm_start: ``none`` (the paper: train from the initialisation) or a classical
+            method (``fdk``): before projection training, fit the model to the run's
+            classical reconstruction at the voxel centres (``Trainer.warm_start``), an
             option beside the paper's procedure (SPEC §4). None = the preset's
             (paper: none; cpu: fdk).
         warm_start_steps: Adam steps of the warm start (None = the preset's).
@@ -82,7 +92,7 @@ class TrainerConfig:
     checkpoint_every: Optional[int] = None
     eval_chunk: Optional[int] = None
     eval_views: Optional[int] = None
-    warm_start: Optional[str] = None
+    warm_start: Optional[WarmStart] = None
     warm_start_steps: Optional[int] = None
     warm_start_points: int = 16384
     warm_start_occupancy: float = 0.01
@@ -91,8 +101,9 @@ class TrainerConfig:
 
 
 @dataclass
-class TrainConfig:
-    """A whole training run.
+class RunConfig(InstantiateConfig):
+    """What every run has, whatever its kind. ``setup(scene=, run_dir=, device=)`` builds the
+    kind's pipeline (``_target``).
 
     Attributes:
         method: the registered method name this config came from.
@@ -101,23 +112,8 @@ class TrainConfig:
         preset: ``auto`` (paper with CUDA, else cpu), ``paper``, ``cpu`` or ``tiny``.
         seed: seeds model initialisation and ray sampling.
         output_dir: parent folder of run folders.
-        num_materials: K; overrides the method's default (None = method default).
-        dry_run: build the model, print the config and parameter count, don't train.
-        bounds: JSON file with ``{"alphas": [...], "betas": [...]}`` (data units, 1/m).
-        bounds_source: where bounds come from when neither ``bounds`` nor
-            ``model.alphas/betas`` are given: ``wide`` (NeAS defaults), ``auto``
-            (GMM on a prior single-material model, SPEC §4) or ``none`` (no SDF).
+        dry_run: build (the model), print the config and parameter count, don't train.
         device: ``auto`` (cuda if available), ``cpu``, ``cuda``, ``cuda:1``...
-        reconstructor: ``neural`` (train the model) or ``fdk`` (FDK/FBP baseline, no model).
-        fdk_filter: ramp-filter window of the FDK baseline (``ram-lak``, ``shepp-logan``, ``cosine``, ``hann``).
-        bounds_method: GMM boundary rule for automatic bounds: ``gmm`` (paper, SPEC §4),
-            ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
-        bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
-            (the paper: a trained NeAS-1M model, SPEC §4) or ``fdk`` (the FDK
-            reconstruction of the training views: no prior training; an option
-            beside the paper's procedure). None = the preset's (paper: prior; cpu: fdk).
-        reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
-            preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
         data_dir: where public benchmark pickles ``<name>_50.pickle`` are looked for.
         resume: a run folder to continue (``kneas-train --resume RUN_DIR``); its
             ``config.json`` is used.
@@ -126,21 +122,60 @@ class TrainConfig:
     method: str = "k-neas"
     scene: str = "foot"
     views: Optional[int] = None
-    preset: str = "auto"
+    preset: Preset = "auto"
     seed: int = 0
     output_dir: str = "outputs"
-    num_materials: Optional[int] = None
     dry_run: bool = False
-    bounds: Optional[str] = None
-    bounds_source: str = "auto"
     device: str = "auto"
-    reconstructor: str = "neural"
-    fdk_filter: str = "ram-lak"
-    bounds_method: str = "gmm"
-    bounds_volume: Optional[str] = None
-    reuse_prior: bool = True
     data_dir: str = "data"
     resume: Optional[str] = None
+
+
+@dataclass
+class ClassicalConfig(RunConfig):
+    """A classical reconstruction run (SPEC §7): no model, no training, 0 parameters.
+
+    Attributes:
+        algorithm: the classical method.
+        reconstruction: its settings.
+    """
+
+    _target = "kneas_method.engine.classical_pipeline:ClassicalPipeline"
+    method: str = "fdk"
+    algorithm: Algorithm = "fdk"
+    reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)
+
+
+@dataclass
+class TrainConfig(RunConfig):
+    """A neural training run.
+
+    Attributes:
+        num_materials: K; overrides the method's default (None = method default).
+        bounds: JSON file with ``{"alphas": [...], "betas": [...]}`` (data units, 1/m).
+        bounds_source: where bounds come from when neither ``bounds`` nor
+            ``model.alphas/betas`` are given: ``wide`` (NeAS defaults), ``auto``
+            (GMM of SPEC §4) or ``none`` (no SDF).
+        bounds_method: GMM boundary rule for automatic bounds: ``gmm`` (paper, SPEC §4),
+            ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
+        bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
+            (the paper: a trained NeAS-1M model, SPEC §4) or a classical reconstruction
+            of the training views (``fdk``: no prior training; an option beside the
+            paper's procedure). None = the preset's (paper: prior; cpu: fdk).
+        reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
+            preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
+        reconstruction: settings of the classical reconstruction used for the bounds
+            or the warm start.
+    """
+
+    _target = "kneas_method.engine.neural_pipeline:NeuralPipeline"
+    num_materials: Optional[int] = None
+    bounds: Optional[str] = None
+    bounds_source: BoundsSource = "auto"
+    bounds_method: BoundsMethod = "gmm"
+    bounds_volume: Optional[BoundsVolume] = None
+    reuse_prior: bool = True
+    reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)
     model: ModelConfig = field(default_factory=ModelConfig)
     datamanager: CTDataManagerConfig = field(default_factory=CTDataManagerConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
@@ -190,11 +225,6 @@ naf = MethodSpecification(
     description="NAF baseline: hash grid + MLP attenuation field, no surfaces",
 )
 fdk = MethodSpecification(
-    config=TrainConfig(
-        method="fdk",
-        reconstructor="fdk",
-        bounds_source="none",
-        model=ModelConfig(field="naf", num_materials=1, floater=False, lambda_eikonal=0.0),
-    ),
+    config=ClassicalConfig(method="fdk", algorithm="fdk"),
     description="FDK baseline: filtered back-projection of the training views (no training, 0 parameters)",
 )

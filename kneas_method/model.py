@@ -6,7 +6,8 @@ stores; the bounds ``alpha``/``beta`` are in data units too). The renderer
 converts segment lengths to metres with ``scale`` (model units per metre,
 ``geometry.scale``), so a rendered line integral equals the projection ``p``.
 
-Components are chosen by registered name (``kneas.fields``, ``kneas.selectors``,
+Components are chosen by registered name (``kneas.encodings``, ``kneas.fields``,
+``kneas.attenuations``, ``kneas.selectors``,
 ``kneas.samplers``, ``kneas.losses``) and built through
 :func:`kneas_method.registry.load`, so a plugin's name works unchanged in a JSON
 config or on the command line. ``*_options`` dicts override the defaults of the
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Optional, Sequence, Union
 
 import torch
@@ -33,19 +34,14 @@ Options = dict[str, Union[int, float, str, bool]]
 PAPER_LAMBDA_EIKONAL = 0.01  # λ_reg of SPEC §3, used when the config leaves it unset
 
 
-def build_component(group: str, name: str, options: Optional[dict] = None, aliases: Sequence[str] = ()) -> InstantiateConfig:
-    """Config of the component registered as ``name`` in ``kneas.<group>``, with ``options`` applied.
-
-    ``aliases``: names tried first (e.g. ``attenuation-shared`` for ``shared``).
-    """
-    known = registry.names(group)
-    chosen = next((a for a in aliases if a in known), name)
-    obj = registry.load(group, chosen)
+def build_component(group: str, name: str, options: Optional[dict] = None) -> InstantiateConfig:
+    """Config of the component registered as ``name`` in ``kneas.<group>``, with ``options`` applied."""
+    obj = registry.load(group, name)
     cfg = obj() if isinstance(obj, type) else dataclasses.replace(obj)
     if not isinstance(cfg, InstantiateConfig):
-        raise ConfigError(f"the {group} entry point {chosen!r} is not a component config (an InstantiateConfig subclass)")
+        raise ConfigError(f"the {group} entry point {name!r} is not a component config (an InstantiateConfig subclass)")
     if options:
-        cfg = update_from_dict(cfg, _parse_option_strings(cfg, dict(options)), where=f"{group}:{chosen}")
+        cfg = update_from_dict(cfg, _parse_option_strings(cfg, dict(options)), where=f"{group}:{name}")
     return cfg
 
 
@@ -75,11 +71,11 @@ class ModelConfig(InstantiateConfig):
     Attributes:
         field: ``kneas.fields`` name of the main field: ``sdf`` (SDF + attenuation
             + selector) or ``naf`` (attenuation directly, no surfaces).
-        encoding: ``kneas.fields`` name of the encoding: ``hashgrid`` or ``frequency``.
+        encoding: ``kneas.encodings`` name of the encoding: ``hashgrid`` or ``frequency``.
         encoding_options: settings of the encoding config (e.g. ``num_levels``,
             ``log2_hashmap_size``); None = the preset's.
         attenuation: attenuation network: ``single``, ``shared``, ``independent``
-            (registered as ``attenuation-<name>``) or any registered name.
+            or any name registered under ``kneas.attenuations``.
         selector: ``kneas.selectors`` name: ``soft`` or ``hard``.
         num_materials: K (signed distance fields / attenuation heads).
         s_init: initial sharpness of ``Omega(d, s) = sigmoid(-s d)`` (1/model unit);
@@ -99,13 +95,6 @@ class ModelConfig(InstantiateConfig):
             is evaluated on (1.0 = all, reusing the render's SDF outputs).
         eikonal_fd_step: finite-difference step (model units); None = half the
             finest hash-grid cell.
-        reference: run the straightforward implementation kept for speed
-            comparisons (``benchmarks/step.py --reference``): the hash grid as a
-            per-level Python loop and the exact eikonal as K separate
-            ``autograd.grad(create_graph=True)`` double backwards. Same values as
-            the default path, which with the torch hash grid and ``eikonal_mode``
-            autograd gets the K distance gradients in forward mode from the
-            render's own pass (``SDFField.forward_with_gradients``).
         compile: ``torch.compile`` the fused SDF pass (values + distance gradients).
             Opt-in: measured on 2 loaded CPU cores (cpu preset, 20,480 points) the
             pass + its backward ran ~35 % faster, but compiling took ~3 minutes,
@@ -138,17 +127,25 @@ class ModelConfig(InstantiateConfig):
     eikonal_fraction: Optional[float] = None
     eikonal_fd_step: Optional[float] = None
     lambda_eikonal: Optional[float] = None
-    reference: bool = False
     compile: bool = False
 
 
-def _finest_cell(encoding_cfg, bound: float) -> float:
+def _half_finest_cell(encoding_cfg, bound: float) -> float:
     """Half the finest grid cell in model units (1e-3 when the encoding has no grid)."""
     try:
         res = encoding_cfg.base_resolution * encoding_cfg.per_level_scale ** (encoding_cfg.num_levels - 1)
         return bound * 2.0 / math.ceil(res) / 2.0
     except AttributeError:
         return 1e-3
+
+
+def field_has_surfaces(config: ModelConfig) -> bool:
+    """True when the model's field (by its registered config) gives signed distances:
+    materials, bounds and meshes apply. Decided from the registered class, never the name."""
+    from .fields.base import FieldConfig
+
+    cfg = build_component("fields", config.field, config.field_options)
+    return bool(isinstance(cfg, FieldConfig) and cfg.has_surfaces)
 
 
 class CTModel(nn.Module):
@@ -163,21 +160,23 @@ class CTModel(nn.Module):
 
     def __init__(self, config: ModelConfig, scale: float = 1.0, device=None):
         super().__init__()
+        from .fields.base import Field
+
         self.config = config
         self.scale = float(scale)
-        enc_cfg = build_component("fields", config.encoding, config.encoding_options)
+        enc_cfg = build_component("encodings", config.encoding, config.encoding_options)
         encoding = enc_cfg.setup(device=device) if device is not None else enc_cfg.setup()
         field_cfg = build_component("fields", config.field, config.field_options)
         if not isinstance(config.num_materials, int) or isinstance(config.num_materials, bool):
             raise ConfigError(f"model.num_materials is {config.num_materials!r}; give a whole number of materials (--num-materials K)")
         K = config.num_materials
         self.field = field_cfg.setup(encoding=encoding, num_materials=K)
-        self.has_sdf = bool(getattr(self.field, "has_sdf", False))
-        self.bound = float(getattr(field_cfg, "bound", 1.0))
-        if self.has_sdf:
-            if K < 1:
-                raise ConfigError(f"num_materials is {K}; an SDF model needs K >= 1 (--num-materials)")
-            att_cfg = build_component("fields", config.attenuation, config.attenuation_options, aliases=(f"attenuation-{config.attenuation}",))
+        if not isinstance(self.field, Field):
+            raise ConfigError(f"the field {config.field!r} builds a {type(self.field).__name__}, not a kneas_method.fields.base.Field")
+        self.has_surfaces = self.field.has_surfaces
+        self.bound = self.field.bound
+        if self.has_surfaces:
+            att_cfg = build_component("attenuations", config.attenuation, config.attenuation_options)
             self.attenuation = att_cfg.setup(feature_dim=self.field.feature_dim, num_materials=K)
             self.selector = build_component("selectors", config.selector, config.selector_options).setup(num_materials=K)
             from .fields.sdf_field import SurfaceBoundary
@@ -193,38 +192,29 @@ class CTModel(nn.Module):
             self.num_materials = 0
         self.ray_sampler = build_component("samplers", config.ray_sampler).setup()
         self.intensity_loss = build_component("losses", config.intensity_loss).setup()
-        fl_cfg = build_component("losses", config.floater_loss)
-        if hasattr(fl_cfg, "fraction"):
-            fl_cfg = dataclasses.replace(fl_cfg, fraction=config.floater_fraction)
-        self.floater_loss = fl_cfg.setup()
+        self.floater_loss = build_component("losses", config.floater_loss, {"fraction": config.floater_fraction}).setup()
         self.eikonal = None
         self.lambda_eikonal = PAPER_LAMBDA_EIKONAL if config.lambda_eikonal is None else float(config.lambda_eikonal)
-        if self.has_sdf and self.lambda_eikonal > 0:
-            ek_cfg = build_component("losses", config.eikonal_loss)
-            changes = {}
-            tcnn = getattr(encoding, "implementation", "") == "tcnn"
+        if self.has_surfaces and self.lambda_eikonal > 0:
+            tcnn = getattr(encoding, "implementation", "torch") == "tcnn"
             mode = config.eikonal_mode or ("finite-difference" if tcnn else "autograd")
             if tcnn and mode == "autograd":
                 raise ConfigError("the tinycudann hash grid has no second derivative, so the autograd eikonal cannot train it; "
                                   "use model.eikonal_mode finite-difference or the torch hash grid (encoding_options implementation torch)")
-            if hasattr(ek_cfg, "mode"):
-                changes["mode"] = mode
-            if hasattr(ek_cfg, "fd_step"):
-                changes["fd_step"] = config.eikonal_fd_step
-            self.eikonal = dataclasses.replace(ek_cfg, **changes).setup(default_step=_finest_cell(enc_cfg, self.bound))
-        self._forward_with_gradients = getattr(self.field, "forward_with_gradients", None)
-        if config.compile and self._forward_with_gradients is not None and not config.reference:
-            self._forward_with_gradients = torch.compile(self._forward_with_gradients)
-        if config.reference:
-            if hasattr(encoding, "reference"):
-                encoding.reference = True
-            if self.eikonal is not None and hasattr(self.eikonal, "reference"):
-                self.eikonal.reference = True
+            ek_cfg = build_component("losses", config.eikonal_loss, {"mode": mode, "fd_step": config.eikonal_fd_step})
+            self.eikonal = ek_cfg.setup(default_step=_half_finest_cell(enc_cfg, self.bound))
+        self._with_gradients = self._field_with_gradients
+        if config.compile and self.field.supports_gradients:
+            self._with_gradients = torch.compile(self._field_with_gradients)
+
+    def _field_with_gradients(self, points: torch.Tensor):
+        """The field's outputs with the distance gradients of the same pass (forward mode)."""
+        return self.field.get_outputs(points, with_gradients=True)
 
     # ------------------------------------------------------------------ setup
     def set_bounds(self, alphas: Sequence[float], betas: Sequence[float]) -> None:
         """Attenuation bounds per material (data units, length K); saved in the state_dict."""
-        if not self.has_sdf:
+        if not self.has_surfaces:
             raise ConfigError("this model has no materials (no SDF), so it takes no attenuation bounds")
         self.attenuation.set_bounds(alphas, betas)
 
@@ -245,20 +235,23 @@ class CTModel(nn.Module):
         ``distances`` [P, K] (model units) and ``mu_materials`` [P, K] (raw
         per-material attenuation, data units).
         """
-        if not self.has_sdf:
-            return {"mu": self.field(points)}
-        return self._materials(*self.field(points))
+        return self._materials(self.field.get_outputs(points))
 
-    def _materials(self, distances, features) -> dict[str, torch.Tensor]:
-        mu_bar = self.attenuation(features)
-        mu, weights = self.selector(distances, mu_bar, self.boundary)
-        return {"mu": mu, "weights": weights, "distances": distances, "mu_materials": mu_bar}
+    def _materials(self, out) -> dict[str, torch.Tensor]:
+        """FieldOutputs -> ``mu`` (and, with surfaces, ``weights``, ``distances``, ``mu_materials``, ``grads``)."""
+        if out.distances is None:
+            return {"mu": out.mu}
+        mu_bar = self.attenuation(out.features)
+        mu, weights = self.selector(out.distances, mu_bar, self.boundary)
+        q = {"mu": mu, "weights": weights, "distances": out.distances, "mu_materials": mu_bar}
+        if out.distance_gradients is not None:
+            q["grads"] = out.distance_gradients
+        return q
 
     @property
     def fused_eikonal(self) -> bool:
         """True when the exact eikonal gradients come in forward mode from the render's pass."""
-        return (self.eikonal is not None and self.eikonal.config.mode == "autograd" and not self.config.reference
-                and bool(getattr(self.field, "has_analytic_gradients", False)))
+        return self.eikonal is not None and self.eikonal.config.mode == "autograd" and self.field.supports_gradients
 
     # ----------------------------------------------------------------- render
     def _render(self, origins, directions, near, far, n_samples, stratified, generator=None, points_grad=False, with_grads=False):
@@ -268,9 +261,7 @@ class CTModel(nn.Module):
         if points_grad:
             flat = flat.detach().requires_grad_(True)
         if with_grads:  # distances, features and d distances / d x [P, K, 3] in one pass
-            distances, features, grads = self._forward_with_gradients(flat.detach())
-            q = self._materials(distances, features)
-            q["grads"] = grads
+            q = self._materials(self._with_gradients(flat.detach()))
         else:
             q = self.query(flat)
         mu = q["mu"].reshape(R, n_samples)
@@ -285,7 +276,6 @@ class CTModel(nn.Module):
         far,
         n_samples: Optional[int] = None,
         stratified: Optional[bool] = None,
-        details: bool = False,
         generator: Optional[torch.Generator] = None,
     ) -> RenderOutput:
         """Render rays ``origins`` [R, 3], ``directions`` [R, 3] (unnormalised, model units).
@@ -295,68 +285,14 @@ class CTModel(nn.Module):
             n_samples: points per ray; default ``num_samples`` in training mode,
                 ``num_eval_samples`` in eval mode.
             stratified: jittered bins (default: ``self.training``) or even spacing.
-            details: also return ``mu`` [R, S], ``weights`` [R, S, K],
-                ``distances`` [R, S, K] and ``t`` [R, S].
         """
         stratified = self.training if stratified is None else stratified
         if n_samples is None:
             n_samples = self.config.num_samples if self.training else self.config.num_eval_samples
         if n_samples is None:
             raise ConfigError("model.num_samples / num_eval_samples are unset; resolve the config with presets.resolve first")
-        intensity, line, mu, t, _, q = self._render(origins, directions, near, far, int(n_samples), stratified, generator)
-        if not details:
-            return RenderOutput(intensity, line)
-        R, S = mu.shape
-        w = q.get("weights")
-        d = q.get("distances")
-        return RenderOutput(
-            intensity, line, mu=mu, t=t,
-            weights=None if w is None else w.reshape(R, S, -1),
-            distances=None if d is None else d.reshape(R, S, -1),
-        )
-
-    def eval_bytes_per_sample(self) -> int:
-        """Rough peak bytes per sample point of a no-grad evaluation render (for chunk sizing).
-
-        Hash grid: the corner indices (int64) and gathered features of 8 corners on every
-        level, plus the lerp temporaries; the MLPs: a few 64-wide float32 rows."""
-        enc = getattr(self.field, "encoding", None)
-        levels = int(getattr(enc, "n_levels", 16))
-        feats = int(getattr(enc, "n_features", 2))
-        grid = levels * (8 * 8 * 2 + 8 * 4 * feats * 2 + 3 * 4 * 4)
-        return grid + 4 * 64 * (4 + max(1, self.num_materials))
-
-    def auto_chunk(self, n_samples: Optional[int] = None, device=None, fraction: float = 0.25,
-                   lo: int = 256, hi: int = 1 << 16) -> int:
-        """Rays per evaluation chunk from the memory available now: ``fraction`` of the free
-        CUDA memory (``torch.cuda.mem_get_info``) or of the host's ``MemAvailable``, divided
-        by :meth:`eval_bytes_per_sample` x samples per ray; clipped to ``[lo, hi]``."""
-        n = int(n_samples or self.config.num_eval_samples or 128)
-        device = torch.device(device) if device is not None else next(self.parameters()).device
-        free = None
-        if device.type == "cuda" and torch.cuda.is_available():
-            free = torch.cuda.mem_get_info(device)[0]
-        else:
-            try:
-                with open("/proc/meminfo") as fh:
-                    for line in fh:
-                        if line.startswith("MemAvailable:"):
-                            free = int(line.split()[1]) * 1024
-                            break
-            except OSError:
-                pass
-        if free is None:
-            return 4096
-        return int(min(hi, max(lo, fraction * free // (self.eval_bytes_per_sample() * n))))
-
-    @torch.no_grad()
-    def render_chunked(self, origins, directions, near, far, chunk: Optional[int] = None, n_samples: Optional[int] = None) -> RenderOutput:
-        """Evaluation render (even spacing, no grad) in chunks of ``chunk`` rays: intensity [R], line_integral [R].
-
-        ``chunk=None``: :meth:`auto_chunk` (from the memory available)."""
-        chunk = int(chunk or self.auto_chunk(n_samples, origins.device))
-        parts = [self.render(origins[i : i + chunk], directions[i : i + chunk], near, far, n_samples, stratified=False) for i in range(0, len(origins), chunk)]
-        return RenderOutput(torch.cat([p.intensity for p in parts]), torch.cat([p.line_integral for p in parts]))
+        intensity, line, *_ = self._render(origins, directions, near, far, int(n_samples), stratified, generator)
+        return RenderOutput(intensity, line)
 
     # ------------------------------------------------------------------ losses
     def volume_loss_dict(self, points: torch.Tensor, targets: torch.Tensor, occupancy_weight: float = 0.0) -> dict[str, torch.Tensor]:
@@ -376,20 +312,19 @@ class CTModel(nn.Module):
         """
         fused = self.fused_eikonal
         if fused:
-            distances, features, grads = self._forward_with_gradients(points.detach())
-            q = self._materials(distances, features)
+            q = self._materials(self._with_gradients(points.detach()))
         else:
             points = points.detach().requires_grad_(self.eikonal is not None)
-            q, grads = self.query(points), None
+            q = self.query(points)
         out = {"volume": torch.mean((q["mu"] - targets) ** 2)}
-        if occupancy_weight > 0 and self.has_sdf:
+        if occupancy_weight > 0 and self.has_surfaces:
             alphas, betas = self.attenuation.alphas, self.attenuation.betas
             thresholds = torch.cat([alphas[:1] / 2, betas[1:]]).to(targets.dtype)
             reached = (targets[:, None] > thresholds[None, :]).to(targets.dtype)
             logits = -self.boundary.s * q["distances"]
             out["occupancy"] = occupancy_weight * F.binary_cross_entropy_with_logits(logits, reached)
         if self.eikonal is not None:
-            out["eikonal"] = self.lambda_eikonal * self.eikonal(self.field.distances, points, q.get("distances"), grads=grads)
+            out["eikonal"] = self.lambda_eikonal * self.eikonal(self.field.distances, points, q.get("distances"), grads=q.get("grads"))
         out["total"] = sum(out.values())
         return out
 
@@ -432,7 +367,7 @@ class CTModel(nn.Module):
                 n = max(1, int(round(frac * len(flat))))
                 idx = torch.randperm(len(flat), device="cpu", generator=generator)[:n].to(flat.device) if n < len(flat) else slice(None)
                 sub = flat[idx].detach()
-                grads = self._forward_with_gradients(sub)[2] if fused else None
+                grads = self._with_gradients(sub).distance_gradients if fused else None
                 eik = self.eikonal(self.field.distances, sub, None, mask=inside[idx], grads=grads)
             out["eikonal"] = self.lambda_eikonal * eik
         out["total"] = sum(out.values())

@@ -22,8 +22,10 @@ from typing import Any
 
 import torch
 
+from .config import to_dict, update_from_dict
 from .errors import ConfigError
-from .methods import BOUNDS_METHODS, BOUNDS_SOURCES, BOUNDS_VOLUMES, PRESETS, RECONSTRUCTORS, WARM_STARTS, TrainConfig
+from .methods import PRESETS, RunConfig, TrainConfig
+from .model import field_has_surfaces
 
 PAPER_HASHGRID = {"num_levels": 14, "features_per_level": 2, "log2_hashmap_size": 19, "base_resolution": 16, "per_level_scale": 2.0}
 
@@ -75,27 +77,20 @@ def choose(preset: str) -> tuple[str, str]:
     return "cpu", "preset 'cpu' chosen automatically: no CUDA GPU, and the paper schedule would take days on CPU (use --preset paper to force it)"
 
 
-def resolve_device(device: str) -> torch.device:
-    """``auto`` -> cuda if available else cpu; anything else as given."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise ConfigError(f"device {device!r} is not a valid torch device ({exc}); use auto, cpu or cuda") from exc
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"device {device!r} asked for but no CUDA GPU is available; use --device cpu or auto")
-    return dev
-
-
-def k_is_chosen(config: TrainConfig) -> bool:
-    """True when K is left open for training to decide: a soft-selector, multi-head
-    SDF method with ``num_materials`` unset and no explicit ``model.alphas``; K then
-    comes from BIC on the prior (automatic bounds) or from the ``--bounds`` file."""
+def k_from_data(config: TrainConfig) -> bool:
+    """True when K is left for the data to decide: a soft-selector, multi-head surface
+    method with ``num_materials`` unset and no explicit ``model.alphas``; K then comes from
+    BIC on the bounds volume (automatic bounds) or from the ``--bounds`` file."""
     m = config.model
-    return (config.num_materials is None and config.reconstructor == "neural" and m.field != "naf"
+    return (config.num_materials is None and field_has_surfaces(m)
             and m.attenuation != "single" and m.selector != "hard" and m.alphas is None
             and (config.bounds is not None or config.bounds_source == "auto"))
+
+
+def automatic_bounds(config: TrainConfig) -> bool:
+    """True when the run estimates its bounds (SPEC §4) rather than being given them."""
+    return (field_has_surfaces(config.model) and config.bounds_source == "auto" and config.bounds is None
+            and config.model.alphas is None)
 
 
 def _fill(obj, values: dict[str, Any]):
@@ -103,14 +98,23 @@ def _fill(obj, values: dict[str, Any]):
     return dataclasses.replace(obj, **changes) if changes else obj
 
 
-def resolve(config: TrainConfig) -> TrainConfig:
+def validate_choices(config: RunConfig) -> RunConfig:
+    """Every setting checked against its type (``Literal`` choices included); a one-line
+    ConfigError names the first that does not fit."""
+    return update_from_dict(config, to_dict(config), where="config")
+
+
+def resolve(config: RunConfig) -> RunConfig:
     """Return a copy of ``config`` with the preset applied and ``config.preset`` made concrete.
 
-    Also applies ``num_materials`` to the model and checks it against the method.
-    The reason for the preset choice is :func:`choose` ``(config.preset)[1]``,
-    computed before resolving.
+    Neural runs (:class:`TrainConfig`) also get ``num_materials`` applied to the model,
+    checked against the method. The reason for the preset choice is
+    :func:`choose` ``(config.preset)[1]``, computed before resolving.
     """
     name, _ = choose(config.preset)
+    config = validate_choices(config)
+    if not isinstance(config, TrainConfig):
+        return dataclasses.replace(config, preset=name)
     table = TABLE[name]
     model = _fill(config.model, table["model"])
     if model.encoding == "hashgrid":
@@ -120,17 +124,9 @@ def resolve(config: TrainConfig) -> TrainConfig:
     elif model.encoding_options is None:
         model = dataclasses.replace(model, encoding_options={})
     K = config.num_materials
-    if config.reconstructor not in RECONSTRUCTORS:
-        raise ConfigError(f"reconstructor {config.reconstructor!r} is not known; use one of {', '.join(RECONSTRUCTORS)}")
-    if config.bounds_source not in BOUNDS_SOURCES:
-        raise ConfigError(f"bounds_source {config.bounds_source!r} is not known; use one of {', '.join(BOUNDS_SOURCES)}")
-    if config.bounds_method not in BOUNDS_METHODS:
-        raise ConfigError(f"bounds_method {config.bounds_method!r} is not known; use one of {', '.join(BOUNDS_METHODS)}")
-    if config.reconstructor == "fdk":
-        if K is not None:
-            raise ConfigError(f"method {config.method!r} reconstructs with FDK and has no materials; drop --num-materials")
-    elif K is not None:
-        if model.field == "naf":
+    surfaces = field_has_surfaces(model)
+    if K is not None:
+        if not surfaces:
             raise ConfigError(f"method {config.method!r} has no materials; drop --num-materials")
         if K < 1:
             raise ConfigError(f"--num-materials must be >= 1, got {K}")
@@ -139,11 +135,9 @@ def resolve(config: TrainConfig) -> TrainConfig:
         if model.selector == "hard" and K != 2:
             raise ConfigError(f"method {config.method!r} uses the hard selector, which works only with 2 materials; use --num-materials 2 or a soft-selector method such as k-neas")
         model = dataclasses.replace(model, num_materials=K)
-    elif model.field != "naf" and not k_is_chosen(dataclasses.replace(config, model=model)):
+    elif surfaces and not k_from_data(dataclasses.replace(config, model=model)):
         K = model.num_materials
     trainer = _fill(config.trainer, table["trainer"])
-    if trainer.warm_start not in WARM_STARTS:
-        raise ConfigError(f"trainer.warm_start {trainer.warm_start!r} is not known; use one of {', '.join(WARM_STARTS)}")
     if not (isinstance(trainer.warm_start_steps, int) and trainer.warm_start_steps >= 0):
         raise ConfigError(f"trainer.warm_start_steps must be a whole number >= 0, got {trainer.warm_start_steps!r}")
     if not (isinstance(trainer.warm_start_points, int) and trainer.warm_start_points >= 1):
@@ -152,8 +146,6 @@ def resolve(config: TrainConfig) -> TrainConfig:
             and math.isfinite(trainer.warm_start_occupancy) and trainer.warm_start_occupancy >= 0):
         raise ConfigError(f"trainer.warm_start_occupancy must be a number >= 0, got {trainer.warm_start_occupancy!r}")
     bounds_volume = config.bounds_volume if config.bounds_volume is not None else table["run"]["bounds_volume"]
-    if bounds_volume not in BOUNDS_VOLUMES:
-        raise ConfigError(f"bounds_volume {bounds_volume!r} is not known; use one of {', '.join(BOUNDS_VOLUMES)}")
     return dataclasses.replace(
         config,
         preset=name,
@@ -167,15 +159,13 @@ def resolve(config: TrainConfig) -> TrainConfig:
 
 def procedure_notes(config: TrainConfig) -> list[str]:
     """Lines saying where a resolved config leaves the paper's procedure (printed by ``kneas-train``)."""
-    notes = []
-    if config.reconstructor != "neural":
+    notes: list[str] = []
+    if not isinstance(config, TrainConfig):
         return notes
-    auto_bounds = (config.model.field != "naf" and config.bounds_source == "auto" and config.bounds is None
-                   and config.model.alphas is None)
-    if auto_bounds and config.bounds_volume == "fdk":
-        notes.append("bounds: the GMM is fitted on the FDK reconstruction, not on a trained NeAS-1M prior "
+    if automatic_bounds(config) and config.bounds_volume != "prior":
+        notes.append(f"bounds: the GMM is fitted on the {config.bounds_volume.upper()} reconstruction, not on a trained NeAS-1M prior "
                      "(an option beside the paper's procedure; --bounds-volume prior for the paper's)")
-    if config.trainer.warm_start == "fdk" and config.trainer.warm_start_steps:
-        notes.append(f"warm start: the model is first fitted to the FDK reconstruction for {config.trainer.warm_start_steps} steps "
-                     "(not in the paper; --trainer.warm-start none trains from the initialisation)")
+    if config.trainer.warm_start != "none" and config.trainer.warm_start_steps:
+        notes.append(f"warm start: the model is first fitted to the {config.trainer.warm_start.upper()} reconstruction for "
+                     f"{config.trainer.warm_start_steps} steps (not in the paper; --trainer.warm-start none trains from the initialisation)")
     return notes

@@ -10,7 +10,9 @@ in the same groups, with no change to kneas:
     [project.entry-points."kneas.selectors"]
     my-selector = "my_package.selectors:MySelectorConfig"
 
-Groups: ``kneas.methods``, ``kneas.fields``, ``kneas.samplers``,
+Groups: ``kneas.methods``, ``kneas.encodings`` (hash grid, frequency),
+``kneas.fields`` (SDF, NAF: :class:`~kneas_method.fields.base.Field`),
+``kneas.attenuations`` (single, shared, independent), ``kneas.samplers``,
 ``kneas.selectors``, ``kneas.losses``, ``kneas.datamanagers``.
 """
 
@@ -22,7 +24,7 @@ from typing import Any
 
 from .errors import ConfigError
 
-GROUPS = ("methods", "fields", "samplers", "selectors", "losses", "datamanagers")
+GROUPS = ("methods", "encodings", "fields", "attenuations", "samplers", "selectors", "losses", "datamanagers")
 
 
 @dataclasses.dataclass

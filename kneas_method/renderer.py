@@ -10,7 +10,6 @@ geometry). The line integral then equals the data projection value ``p``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 
@@ -22,18 +21,10 @@ class RenderOutput:
     Attributes:
         intensity: [R] ``exp(−line_integral)``.
         line_integral: [R] ``Σ mu·δ`` (unit-free; compare with projections ``p``).
-        mu: [R, S] per-sample attenuation, data units (1/m), or None.
-        weights: [R, S, K] per-material selector weights, or None (no SDF / not asked).
-        distances: [R, S, K] signed distances, model units, or None.
-        t: [R, S] sample ray parameters, model units, or None.
     """
 
     intensity: torch.Tensor
     line_integral: torch.Tensor
-    mu: Optional[torch.Tensor] = None
-    weights: Optional[torch.Tensor] = None
-    distances: Optional[torch.Tensor] = None
-    t: Optional[torch.Tensor] = None
 
 
 def sample_points(origins: torch.Tensor, directions: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

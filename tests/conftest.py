@@ -1,4 +1,7 @@
-"""Shared builders for the export/eval/surface tests (no tests here).
+"""Shared fixtures and builders of the tests (no tests here).
+
+* ``run(argv, capsys)`` / ``run_dir_of(out)``: ``kneas-train`` in process, and the run folder it printed;
+* ``simulated_foot(...)`` and the ``tiny_scene`` fixture: a tiny built-in foot scene pickle;
 
 * a tiny two-sphere phantom scene with exact membership (known-answer surfaces);
 * a tiny built-in ``foot`` scene pickle (so a run folder can name it by path);
@@ -16,8 +19,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
-from torch import nn
 
 from kneas_method import presets, registry
 from kneas_method.config import to_dict
@@ -25,6 +28,7 @@ from kneas_method.data.naf import save_naf
 from kneas_method.data.phantoms import Phantom, Primitive
 from kneas_method.data.simulate import SimulationConfig, simulate_phantom
 from kneas_method.engine.checkpoint import save_checkpoint
+from kneas_method.fields.base import Field, FieldConfig, FieldOutputs
 
 TINY_SIM = SimulationConfig(n_voxel=16, voxel_mm=8.0, n_detector=16, n_train=4, n_val=3)
 
@@ -58,22 +62,17 @@ def sphere_sdf_model_units(points: torch.Tensor, geometry, spheres=(BIG, SMALL),
     return torch.stack(out, -1)
 
 
-class AnalyticSDF(nn.Module):
+class AnalyticSDF(Field):
     """Stands in for a model's SDF field: exact sphere distances, zero features."""
 
-    has_sdf = True
-
     def __init__(self, geometry, feature_dim: int, spheres=(BIG, SMALL), shift_mm=(0.0, 0.0, 0.0)):
-        super().__init__()
+        super().__init__(FieldConfig())
         self.geometry, self.feature_dim, self.spheres, self.shift_mm = geometry, feature_dim, spheres, shift_mm
-        self.num_materials = len(spheres)
+        self.num_materials = self.num_distances = len(spheres)
 
-    def forward(self, points):
+    def get_outputs(self, points, with_gradients=False):
         d = sphere_sdf_model_units(points, self.geometry, self.spheres, self.shift_mm)
-        return d, torch.zeros(len(points), self.feature_dim)
-
-    def distances(self, points):
-        return self.forward(points)[0]
+        return FieldOutputs(distances=d, features=torch.zeros(len(points), self.feature_dim))
 
 
 def tiny_config(method: str, scene_path: str, **kw):
@@ -134,7 +133,7 @@ def write_run(folder: Path, method: str, scene_path: Path, *, fit: bool = True, 
     scene = resolve_scene(str(scene_path))
     torch.manual_seed(0)
     model = cfg.model.setup(scale=scene.geometry.scale)
-    if model.has_sdf:
+    if model.has_surfaces:
         K = model.num_materials
         alphas, betas = [0.1] * K, list(np.linspace(0.25, 0.75, K))
         model.set_bounds(alphas, betas)
@@ -149,8 +148,37 @@ def write_run(folder: Path, method: str, scene_path: Path, *, fit: bool = True, 
 def write_fdk_run(folder: Path, scene_path: Path, volume: np.ndarray) -> Path:
     run = Path(folder) / "spheres" / "fdk" / "20250101-000000"
     run.mkdir(parents=True)
-    cfg = tiny_config("neas-1m", scene_path)
-    data = to_dict(dataclasses.replace(cfg, method="fdk"))
+    data = to_dict(tiny_config("fdk", scene_path))
     (run / "config.json").write_text(json.dumps(data))
     np.save(run / "volume.npy", volume.astype(np.float32))
     return run
+
+
+def simulated_foot(folder, name: str, n: int, voxel_mm: float, n_train: int, n_val: int = 4):
+    """The built-in foot phantom simulated at n^3 voxels / n^2 detector, saved as ``folder/name.pickle``."""
+    path = folder / f"{name}.pickle"
+    cfg = SimulationConfig(n_voxel=n, voxel_mm=voxel_mm, n_detector=n, n_train=n_train, n_val=n_val)
+    save_naf(simulate_phantom("foot", cfg), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return simulated_foot(tmp_path_factory.mktemp("scene"), "tinyfoot", 16, 15.0, n_train=4)
+
+
+def run(argv, capsys):
+    """``kneas-train argv`` in process: ``(exit code, stdout, stderr)``."""
+    from kneas_method.cli import train as cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    out = capsys.readouterr()
+    return exc.value.code, out.out, out.err
+
+
+def run_dir_of(out: str) -> Path:
+    """The run folder ``kneas-train`` printed last (``run folder: ...``)."""
+    lines = [line for line in out.splitlines() if line.startswith("run folder: ")]
+    assert lines, out
+    return Path(lines[-1].split("run folder: ", 1)[1].strip())

@@ -2,7 +2,6 @@ import dataclasses
 import json
 import re
 import subprocess
-import sys
 
 import pytest
 
@@ -82,3 +81,60 @@ def test_config_file_reruns_saved_config(tmp_path, capsys, monkeypatch):
     assert code == 0 and got[1] == got[0]
     code, _, _ = run_main(["--config", str(path), "--seed", "12"], capsys)
     assert code == 0 and got[2] == dataclasses.replace(got[0], seed=12)
+
+
+def _saved_run(tmp_path, capsys, monkeypatch, method="k-neas"):
+    """A run folder holding only the config.json ``kneas-train`` would write (resolved, tiny)."""
+    got = []
+    monkeypatch.setattr(cli, "train", lambda config: got.append(config) or 0)
+    run_main([method, "--preset", "tiny", "--trainer.epochs", "2"], capsys)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(to_dict(got[0])))
+    return run, got
+
+
+def test_resume_applies_safe_flags_and_refuses_the_others(tmp_path, capsys, monkeypatch):
+    run, got = _saved_run(tmp_path, capsys, monkeypatch)
+    code, _, err = run_main(["--resume", str(run)], capsys)
+    assert code == 0 and got[-1] == dataclasses.replace(got[0], resume=str(run))
+    # settings that do not change what is trained are applied
+    code, _, err = run_main(["--resume", str(run), "--device", "cpu", "--trainer.eval-chunk", "512"], capsys)
+    assert code == 0, err
+    assert got[-1].device == "cpu" and got[-1].trainer.eval_chunk == 512 and got[-1].resume == str(run)
+    # the others are refused in one line that names them and the way to start a new run with them
+    calls = len(got)
+    code, _, err = run_main(["--resume", str(run), "--trainer.epochs", "3", "--seed", "4"], capsys)
+    assert code == 2 and len(got) == calls and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert "trainer.epochs (2 -> 3)" in err and "seed (0 -> 4)" in err
+    assert f"kneas-train --config {run / 'config.json'}" in err and "--trainer.epochs 3" in err
+    # a method name other than the run's is a mistake too
+    code, _, err = run_main(["--resume", str(run), "naf"], capsys)
+    assert code == 2 and "k-neas run" in err
+
+
+def test_choices_are_listed_by_help_and_checked(tmp_path, capsys):
+    code, out, _ = run_main(["k-neas", "--help"], capsys)
+    assert code == 0
+    for flag, choices in (("--bounds-volume", "{None,prior,fdk}"), ("--trainer.warm-start", "{None,none,fdk}"),
+                          ("--preset", "{auto,paper,cpu,tiny}"), ("--bounds-method", "{gmm,quantile,bayes}")):
+        assert re.search(rf"{re.escape(flag)} {re.escape(choices)}", out), flag
+    bad = tmp_path / "bad.json"
+    data = to_dict(registry.load("methods", "k-neas").config)
+    data["trainer"]["warm_start"] = "ground-truth"
+    bad.write_text(json.dumps(data))
+    code, _, err = run_main(["--config", str(bad), "--dry-run"], capsys)
+    assert code == 2 and "trainer.warm_start" in err and "'ground-truth'" in err and "none" in err
+
+
+def test_older_fdk_config_still_loads(tmp_path):
+    """FDK runs of kneas 0.1 wrote the neural settings too (and ``reconstructor``); they still load."""
+    from kneas_method.engine.loading import read_run_config
+    from kneas_method.methods import ClassicalConfig
+
+    old = to_dict(registry.load("methods", "neas-1m").config)
+    old.update(method="fdk", reconstructor="fdk", fdk_filter="hann")
+    old["model"]["reference"] = False
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    config = read_run_config(tmp_path)
+    assert isinstance(config, ClassicalConfig) and config.algorithm == "fdk" and config.reconstruction.filter == "hann"

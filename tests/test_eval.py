@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from kneas_method.cli import eval as eval_cli
-from test_export_support import foot_scene_file, write_run
+from conftest import foot_scene_file, write_run
 
 
 @pytest.fixture(scope="module")

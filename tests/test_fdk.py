@@ -8,7 +8,7 @@ import torch
 
 from kneas_method.data.scene import Scene, Views
 from kneas_method.errors import ConfigError, KneasError
-from kneas_method.evaluation.fdk import angular_widths, fdk_reconstruct, ramp_filter, redundancy_weights
+from kneas_method.classical.fdk import angular_widths, fdk_reconstruct, ramp_filter, redundancy_weights
 from kneas_method.evaluation.metrics import psnr3d
 from kneas_method.geometry import Geometry
 

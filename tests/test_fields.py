@@ -1,4 +1,3 @@
-import dataclasses
 
 import pytest
 import torch
@@ -19,7 +18,7 @@ def n_params(m):
 
 
 def tiny_encoding():
-    return build_component("fields", "hashgrid", TINY).setup()
+    return build_component("encodings", "hashgrid", TINY).setup()
 
 
 def test_attenuation_parameter_counts_match_spec():
@@ -68,14 +67,15 @@ def test_default_bounds_wide_for_one_material():
 def test_sdf_field_shapes_and_gradients():
     field = SDFFieldConfig().setup(encoding=tiny_encoding(), num_materials=3)
     x = (torch.rand(64, 3) * 2 - 1).requires_grad_(True)
-    d, f = field(x)
+    out = field(x)
+    d, f = out.distances, out.features
     assert d.shape == (64, 3) and f.shape == (64, 8) and d.dtype == torch.float32
     (g,) = torch.autograd.grad(d.sum(), x, create_graph=True)
     assert g.abs().sum() > 0
     g.pow(2).sum().backward()  # second order through the hash grid
     assert field.encoding.parameters().__next__().grad is not None
     # points outside the encoding's box are clamped, not an error
-    d_out, _ = field(torch.tensor([[5.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    d_out = field(torch.tensor([[5.0, 0.0, 0.0], [1.0, 0.0, 0.0]])).distances
     assert torch.allclose(d_out[0], d_out[1])
 
 
@@ -92,9 +92,9 @@ def test_surface_boundary():
 
 def test_naf_field_non_negative_and_trainable():
     field = NAFFieldConfig().setup(encoding=tiny_encoding())
-    assert field.has_sdf is False
+    assert field.has_surfaces is False and field.num_distances == 0
     x = torch.rand(100, 3) * 2 - 1
-    mu = field(x)
+    mu = field(x).mu
     assert mu.shape == (100,) and torch.all(mu >= 0)
     mu.sum().backward()
     assert all(p.grad is not None for p in field.parameters())
@@ -104,7 +104,8 @@ def test_naf_field_non_negative_and_trainable():
 
 def test_encoding_selectable_by_name_frequency():
     pytest.importorskip("kneas_method.fields.frequency")
-    enc = build_component("fields", "frequency", {"num_frequencies": 4}).setup()
+    enc = build_component("encodings", "frequency", {"num_frequencies": 4}).setup()
     field = SDFFieldConfig().setup(encoding=enc, num_materials=2)
-    d, f = field(torch.rand(10, 3))
+    out = field(torch.rand(10, 3))
+    d, f = out.distances, out.features
     assert d.shape == (10, 2) and field.mlp[0].in_features == enc.n_output_dims

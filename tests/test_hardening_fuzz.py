@@ -16,11 +16,11 @@ from kneas_method import registry
 from kneas_method.cli import data as data_cli
 from kneas_method.cli import train as train_cli
 from kneas_method.config import to_dict
-from kneas_method.data.naf import load_naf, save_naf
+from kneas_method.data.naf import load_naf
 from kneas_method.data.scene import Scene
 from kneas_method.data.simulate import SimulationConfig, simulate_phantom
 from kneas_method.data.naf import scene_to_dict
-from kneas_method.errors import KneasError, SceneError
+from kneas_method.errors import SceneError
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                          HealthCheck.too_slow])

@@ -6,7 +6,7 @@ import pytest
 
 from kneas_method.cli import eval as eval_cli
 from kneas_method.cli import export as export_cli
-from test_export_support import foot_scene_file, write_run
+from conftest import foot_scene_file, write_run
 
 
 def _exit(main, argv):

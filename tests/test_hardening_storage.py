@@ -11,7 +11,7 @@ from kneas_method.engine import checkpoint as ckpt_mod
 from kneas_method.engine import run_dir as run_dir_mod
 from kneas_method.engine.checkpoint import list_checkpoints, load_checkpoint_file, save_checkpoint
 from kneas_method.errors import KneasError
-from test_pipeline import run, run_dir_of, tiny_scene  # noqa: F401  (fixture)
+from conftest import run, run_dir_of
 
 ARGS = ["--preset", "tiny", "--seed", "1", "--trainer.epochs", "3", "--trainer.checkpoint-every", "1",
         "--trainer.eval-every", "0"]

@@ -4,7 +4,7 @@ import json
 import pytest
 import torch
 
-from kneas_method import methods, presets, registry
+from kneas_method import presets, registry
 from kneas_method.config import to_dict, update_from_dict
 from kneas_method.errors import ConfigError
 from kneas_method.methods import TrainConfig
@@ -116,7 +116,7 @@ def test_num_materials_override_and_errors():
 def test_neas_2m_and_k_neas_share_one_prior():
     """NeAS-2M and K-NeAS are compared under the same bounds: the same prior config (hence key)."""
     from kneas_method import presets
-    from kneas_method.engine.pipeline import prior_config
+    from kneas_method.engine.bounds_stage import prior_config
     from kneas_method.methods import k_neas, neas_2m
 
     a = prior_config(presets.resolve(dataclasses.replace(k_neas.config, preset="tiny")))

@@ -42,21 +42,20 @@ def test_renderer_functions():
     assert line.item() == pytest.approx(12.5) and I.item() == pytest.approx(math.exp(-12.5))
 
 
-def test_render_details_and_query_shapes():
+def test_render_and_query_shapes():
     model = model_of(methods.k_neas)
     o = torch.tensor([[0.0, -3.0, 0.0]] * 4)
     d = torch.tensor([[0.0, 1.0, 0.05 * k] for k in range(4)])
     model.eval()
-    out = model.render(o, d, 2.0, 4.0, details=True)
-    S = model.config.num_eval_samples
-    assert out.intensity.shape == (4,) and out.mu.shape == (4, S)
-    assert out.weights.shape == (4, S, 3) and out.distances.shape == (4, S, 3) and out.t.shape == (4, S)
+    out = model.render(o, d, 2.0, 4.0)
+    assert out.intensity.shape == (4,) and out.line_integral.shape == (4,)
+    assert torch.allclose(out.intensity, torch.exp(-out.line_integral))
     assert torch.all(out.intensity <= 1) and torch.all(out.intensity > 0)
     q = model.query(torch.rand(10, 3))
     assert set(q) == {"mu", "weights", "distances", "mu_materials"}
     assert q["weights"].shape == (10, 3) and q["mu_materials"].shape == (10, 3)
     naf = model_of(methods.naf)
-    assert not naf.has_sdf and naf.num_materials == 0
+    assert not naf.has_surfaces and naf.num_materials == 0
     assert set(naf.query(torch.rand(5, 3))) == {"mu"}
     with pytest.raises(ConfigError, match="no materials"):
         naf.set_bounds([1.0], [0.0])
@@ -64,7 +63,7 @@ def test_render_details_and_query_shapes():
 
 def test_bounds_in_data_units_and_state_dict():
     model = model_of(methods.k_neas)
-    assert model.num_materials == 3 and model.has_sdf
+    assert model.num_materials == 3 and model.has_surfaces
     model.set_bounds([0.2, 0.3, 1.0], [0.0, 0.2, 0.5])
     q = model.query(torch.rand(50, 3) * 2 - 1)
     mb = q["mu_materials"]
@@ -133,16 +132,3 @@ def test_one_training_step_reduces_intensity_loss():
         loss["total"].backward()
         opt.step()
     assert loss["intensity"].item() < first
-
-
-def test_render_chunked_auto_chunk_matches_one_chunk():
-    model = model_of(methods.k_neas)
-    model.eval()
-    chunk = model.auto_chunk(16)
-    assert 256 <= chunk <= 1 << 16
-    assert model.eval_bytes_per_sample() > 0
-    b = batch()
-    whole = model.render_chunked(b["origins"], b["directions"], b["near"], b["far"], chunk=len(b["origins"]), n_samples=16)
-    auto = model.render_chunked(b["origins"], b["directions"], b["near"], b["far"], n_samples=16)
-    small = model.render_chunked(b["origins"], b["directions"], b["near"], b["far"], chunk=5, n_samples=16)
-    assert torch.allclose(whole.line_integral, auto.line_integral) and torch.allclose(whole.line_integral, small.line_integral, atol=1e-6)

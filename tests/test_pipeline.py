@@ -8,39 +8,11 @@ import pytest
 import torch
 
 from kneas_method.cli import train as cli
-from kneas_method.data.naf import save_naf
-from kneas_method.data.simulate import SimulationConfig, simulate_phantom
 from kneas_method.errors import KneasError
 
+from conftest import run, run_dir_of
+
 METRIC_KEYS = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_ls", "parameters", "steps", "wall_time_s", "preset", "scene_source")
-
-
-def simulated_foot(folder, name: str, n: int, voxel_mm: float, n_train: int, n_val: int = 4):
-    """The built-in foot phantom simulated at n^3 voxels / n^2 detector, saved as ``folder/name.pickle``."""
-    path = folder / f"{name}.pickle"
-    cfg = SimulationConfig(n_voxel=n, voxel_mm=voxel_mm, n_detector=n, n_train=n_train, n_val=n_val)
-    save_naf(simulate_phantom("foot", cfg), path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return simulated_foot(tmp_path_factory.mktemp("scene"), "tinyfoot", 16, 15.0, n_train=4)
-
-
-def run(argv, capsys):
-    with pytest.raises(SystemExit) as exc:
-        cli.main(argv)
-    out = capsys.readouterr()
-    return exc.value.code, out.out, out.err
-
-
-def run_dir_of(out: str):
-    lines = [l for l in out.splitlines() if l.startswith("run folder: ")]
-    assert lines, out
-    from pathlib import Path
-
-    return Path(lines[-1].split("run folder: ", 1)[1].strip())
 
 
 def test_k_neas_two_stage_pipeline(tiny_scene, tmp_path, capsys):
@@ -104,7 +76,7 @@ def test_k_neas_two_stage_pipeline(tiny_scene, tmp_path, capsys):
     # same scene/views/preset/seed: the prior is reused, and neas-2m gets GMM bounds with K = 2 from it
     code, out, err = run(["neas-2m", "--scene", str(tiny_scene), "--preset", "tiny", "--output-dir", str(outdir)], capsys)
     assert code == 0, err
-    assert f"reusing the NeAS-1M prior" in out and str(prior_dir) in out.replace("\n", "")
+    assert "reusing the NeAS-1M prior" in out and str(prior_dir) in out.replace("\n", "")
     run2 = run_dir_of(out)
     b2 = json.loads((run2 / "bounds.json").read_text())
     assert b2["K"] == 2 and b2["k_chosen_by"] == "given" and b2["prior_reused"] is True
@@ -148,7 +120,7 @@ def test_fdk_method(tiny_scene, tmp_path, capsys):
     for key in METRIC_KEYS:
         assert key in m, key
     assert m["parameters"] == 0 and m["steps"] == 0 and not list((run_dir / "checkpoints").glob("*.ckpt"))
-    assert json.loads((run_dir / "config.json").read_text())["reconstructor"] == "fdk"
+    assert json.loads((run_dir / "config.json").read_text())["algorithm"] == "fdk"
     from kneas_method.data.naf import load_naf
     from kneas_method.engine.evaluate import evaluate_volume
 

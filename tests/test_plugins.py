@@ -2,6 +2,7 @@
 
 import dataclasses
 import importlib
+import json
 import re
 import sys
 import textwrap
@@ -46,6 +47,40 @@ PLUGIN = textwrap.dedent(
         ),
         description="demo plugin method: shared attenuation with the share selector",
     )
+
+
+    # a field of its own, with surfaces: a two-layer SDF network (the built-in has one hidden layer)
+    import torch
+    from torch import nn
+
+    from kneas_method.fields.base import Field, FieldConfig, FieldOutputs, encode_points
+
+
+    @dataclass
+    class DeepSDFConfig(FieldConfig):
+        _target = "kneas_demo_plugin:DeepSDF"
+        has_surfaces = True
+        feature_dim: int = 8
+
+
+    class DeepSDF(Field):
+        def __init__(self, config, *, encoding, num_materials):
+            super().__init__(config)
+            self.encoding, self.num_distances, self.feature_dim = encoding, num_materials, config.feature_dim
+            self.mlp = nn.Sequential(nn.Linear(encoding.n_output_dims, 32), nn.ReLU(), nn.Linear(32, 32), nn.ReLU(),
+                                     nn.Linear(32, num_materials + config.feature_dim))
+            with torch.no_grad():
+                self.mlp[-1].bias[:num_materials] += 0.1
+
+        def get_outputs(self, points, with_gradients=False):
+            out = self.mlp(encode_points(self.encoding, points, self.bound))
+            return FieldOutputs(distances=out[:, : self.num_distances], features=out[:, self.num_distances :])
+
+
+    deep_method = MethodSpecification(
+        config=TrainConfig(method="demo-deep", model=ModelConfig(field="demo-deep", attenuation="shared", floater=True)),
+        description="demo plugin method: K-NeAS on the plugin's own surface field",
+    )
     '''
 )
 
@@ -53,8 +88,12 @@ ENTRY_POINTS = """\
 [kneas.selectors]
 demo-share = kneas_demo_plugin:ShareSelectorConfig
 
+[kneas.fields]
+demo-deep = kneas_demo_plugin:DeepSDFConfig
+
 [kneas.methods]
 demo-share = kneas_demo_plugin:method
+demo-deep = kneas_demo_plugin:deep_method
 """
 
 
@@ -125,3 +164,22 @@ def test_plugin_method_trains(plugin):
     assert all(np.isfinite(losses))
     assert np.mean(losses[-4:]) < np.mean(losses[:4])
     assert any(not torch.equal(a, b.detach()) for a, b in zip(before, model.parameters()))
+
+
+def test_plugin_surface_field_trains_as_an_sdf_method(plugin, tmp_path, capsys):
+    """A field registered under a new name, with surfaces: the run estimates bounds (GMM, K by
+    BIC), trains the K-material model on it and reports materials, like the built-in SDF field."""
+    from kneas_method.model import field_has_surfaces
+
+    from conftest import run, run_dir_of, simulated_foot
+
+    spec = registry.load("methods", "demo-deep")
+    assert field_has_surfaces(spec.config.model) and presets.k_from_data(spec.config)
+    scene = simulated_foot(tmp_path, "plugfoot", 16, 15.0, n_train=4)
+    code, out, err = run(["demo-deep", "--scene", str(scene), "--preset", "tiny", "--output-dir", str(tmp_path / "out"),
+                          "--bounds-volume", "fdk"], capsys)
+    assert code == 0, err
+    assert "bounds: GMM (gmm) on" in out and "BIC" in out
+    metrics = json.loads((run_dir_of(out) / "metrics.json").read_text())
+    assert metrics["num_materials"] >= 1 and len(metrics["alphas"]) == metrics["num_materials"]
+    assert np.isfinite(metrics["psnr3d"])

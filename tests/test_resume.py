@@ -67,7 +67,7 @@ def test_interrupt_then_resume_matches_straight_run(tmp_path, procedure):
     resumed = kneas_train(["--resume", str(run_dir)])
     out_c, _ = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, out_c
-    assert "bounds: already estimated for this run" in out_c and f"model: resuming from" in out_c
+    assert "bounds: already estimated for this run" in out_c and "model: resuming from" in out_c
     metrics_b = json.loads((run_dir / "metrics.json").read_text())
     for key in EXACT:
         assert metrics_b[key] == metrics_a[key], key

@@ -3,7 +3,8 @@
 Exact parts (equal within float32 round-off): the vectorised hash grid vs the
 per-level loop; the forward-mode K distance gradients vs K separate
 double-backward passes; the batched autograd K gradients; and a whole
-``CTModel.loss_dict`` + backward, fast vs ``reference=True``. Approximate part:
+``CTModel.loss_dict`` + backward, fast vs the straightforward model
+(``benchmarks/naive.py``, the oracles kept outside the package). Approximate part:
 the finite-difference eikonal vs the exact one on the model's own SDF.
 """
 
@@ -16,6 +17,8 @@ from kneas_method import methods, presets
 from kneas_method.fields.hash_grid import HashGridConfig, HashGridEncoding
 from kneas_method.fields.sdf_field import SDFField, SDFFieldConfig
 from kneas_method.losses.eikonal import EikonalLoss, EikonalLossConfig
+
+from benchmarks.naive import ReferenceHashGrid, eikonal_k_loop, hash_grid_loop, make_reference
 
 
 def grid(force_hash=False, levels=5):
@@ -44,11 +47,10 @@ def test_vectorised_grid_equals_per_level_loop(force_hash):
     enc = grid(force_hash)
     x = pts()
     y_fast, g_fast = table_grad(enc, enc.encode, x)
-    y_ref, g_ref = table_grad(enc, enc.encode_reference, x)
+    y_ref, g_ref = table_grad(enc, lambda pts_: hash_grid_loop(enc, pts_), x)
     assert torch.allclose(y_fast, y_ref, atol=1e-6)
     assert torch.allclose(g_fast, g_ref, atol=1e-5)
-    enc.reference = True
-    assert torch.allclose(enc(x), y_ref)
+    assert torch.allclose(ReferenceHashGrid(enc)(x), y_ref)
 
 
 def test_grid_jacobian_equals_autograd_including_clamped_points():
@@ -73,9 +75,7 @@ def sdf(K=3, bound=1.0):
 
 
 def k_backward_grads(field, x):
-    xr = x.clone().requires_grad_(True)
-    d, _ = field(xr)
-    return torch.stack([torch.autograd.grad(d[:, k].sum(), xr, create_graph=True)[0] for k in range(d.shape[1])], 1)
+    return eikonal_k_loop(field.distances, x)
 
 
 @pytest.mark.parametrize("bound", [1.0, 1.3])
@@ -83,7 +83,8 @@ def test_forward_mode_k_gradients_equal_k_backward_passes_and_train_the_same(bou
     field = sdf(bound=bound)
     x = pts(300, spread=1.5)
     d, f, g_fast = field.forward_with_gradients(x)
-    d_ref, f_ref = field(x)
+    plain = field.get_outputs(x)
+    d_ref, f_ref = plain.distances, plain.features
     assert torch.equal(d, d_ref) and torch.equal(f, f_ref)
     g_ref = k_backward_grads(field, x)
     assert torch.allclose(g_fast, g_ref, rtol=1e-5, atol=1e-4)
@@ -102,8 +103,7 @@ def test_batched_autograd_equals_k_loop():
     x = pts(100, spread=0.9)
     loss = EikonalLossConfig(mode="autograd").setup()
     batched = loss.gradients(field.distances, x)
-    loss.reference = True
-    looped = loss.gradients(field.distances, x)
+    looped = eikonal_k_loop(field.distances, x)
     assert torch.allclose(batched, looped, rtol=1e-5, atol=1e-5)
 
 
@@ -141,7 +141,7 @@ def model_pair(fraction=1.0, K=3):
     mc = dataclasses.replace(cfg.model, eikonal_fraction=fraction)
     torch.manual_seed(0)
     fast = mc.setup(scale=2.0)
-    ref = dataclasses.replace(mc, reference=True).setup(scale=2.0)
+    ref = make_reference(mc.setup(scale=2.0))
     ref.load_state_dict(fast.state_dict())
     with torch.no_grad():  # a non-trivial table (the default init is ~1e-4)
         fast.field.encoding.table.uniform_(-0.5, 0.5)

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import torch
 
 from kneas_method.errors import KneasError
 from kneas_method.evaluation.surfaces import (
@@ -16,7 +15,7 @@ from kneas_method.evaluation.surfaces import (
     query_grid,
     visible_fields,
 )
-from test_export_support import exact_sphere_model, sphere_scene
+from conftest import exact_sphere_model, sphere_scene
 
 
 @pytest.fixture(scope="module")
@@ -104,7 +103,7 @@ def test_fine_grid_and_membership(scene):
 
 def test_foot_levels_from_the_phantom():
     from kneas_method.data.simulate import simulate_phantom
-    from test_export_support import TINY_SIM
+    from conftest import TINY_SIM
 
     foot = simulate_phantom("foot", TINY_SIM)
     assert gt_levels(foot).tolist() == [0.28, 0.5, 0.9]

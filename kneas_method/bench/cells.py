@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ..engine.run_dir import read_json, write_json
+from ..engine.run_dir import read_json, safe_name, write_json
 from .grid import DEFAULT_TRAIN_PREFIX, Cell
 
 CELLS = "cells"
@@ -30,10 +30,6 @@ ERROR_TAIL_LINES = 20
 
 def cell_dir(output_dir: str | Path, cell: Cell) -> Path:
     return Path(output_dir) / CELLS / cell.id
-
-
-def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name)) or "x"
 
 
 def find_metrics(folder: str | Path, method: Optional[str] = None) -> Optional[Path]:
@@ -46,7 +42,7 @@ def find_metrics(folder: str | Path, method: Optional[str] = None) -> Optional[P
     folder = Path(folder)
     if not folder.is_dir():
         return None
-    pattern = f"*/{_safe(method)}/*/metrics.json" if method else "*/*/*/metrics.json"
+    pattern = f"*/{safe_name(method)}/*/metrics.json" if method else "*/*/*/metrics.json"
     found = [p for p in folder.glob(pattern) if p.is_file()]
     if not found:
         return None

@@ -19,7 +19,6 @@ Examples::
 
 from __future__ import annotations
 
-import dataclasses
 import shlex
 import sys
 import time

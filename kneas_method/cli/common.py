@@ -5,16 +5,12 @@ from __future__ import annotations
 import sys
 from typing import Callable
 
-from rich.console import Console
 from rich.markup import escape
 
+from ..console import EXIT_INTERRUPTED, EXIT_USER_ERROR, console, err_console
 from ..errors import KneasError
 
-console = Console(stderr=False, highlight=False)
-err_console = Console(stderr=True, highlight=False)
-
-EXIT_USER_ERROR = 2
-EXIT_INTERRUPTED = 130
+__all__ = ["run_cli", "console", "err_console", "EXIT_INTERRUPTED", "EXIT_USER_ERROR"]
 
 
 def run_cli(main: Callable[[], int | None]) -> None:
@@ -28,15 +24,3 @@ def run_cli(main: Callable[[], int | None]) -> None:
         err_console.print("interrupted")
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(code or 0)
-
-
-def not_built_yet(command: str, issue: str) -> Callable[[], None]:
-    """Entry point for a command that does not exist yet: says so and exits 2."""
-
-    def main() -> None:
-        def body():
-            raise KneasError(f"'{command}' is not built yet in this version of kneas ({issue}); see the README for what works now")
-
-        run_cli(body)
-
-    return main

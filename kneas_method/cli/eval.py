@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..errors import KneasError
 from .common import run_cli
-from .export import _device, _say, output_folder
+from .export import _say, output_folder
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -50,7 +50,7 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
         metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True)
     else:
         metrics, (proj, vol) = evaluate_model(run.model, run.scene, run.config, device, return_arrays=True)
-    if run.model is not None and getattr(run.model, "has_sdf", False) and run.scene.labels is not None:
+    if run.has_surfaces and run.scene.labels is not None:
         from ..evaluation.surfaces import material_metrics
 
         metrics["materials"] = material_metrics(run.model, run.scene, factor=grid_factor, air_threshold=air_threshold,
@@ -81,7 +81,7 @@ def main(argv=None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
 
     def body() -> int:
-        from ..engine.loading import load_run
+        from ..engine.loading import load_run, resolve_device
         from ..engine.run_dir import timestamp, write_json
 
         args = _parser().parse_args(argv)
@@ -93,7 +93,7 @@ def main(argv=None) -> None:
             raise KneasError(f"--checkpoint {args.checkpoint} is not inside run {args.run}; give only one of them")
         if args.grid_factor < 1:
             raise KneasError(f"--grid-factor must be a positive integer, got {args.grid_factor}")
-        device = _device(args.device)
+        device = resolve_device(args.device)
         run = load_run(target, scene=args.scene, device=device)
         what = f"checkpoint {run.checkpoint_path} (step {run.step})" if run.checkpoint_path else "volume.npy"
         _say(f"evaluating {run.config.method} run {run.run_dir}: {what} on scene {run.scene.name} ({len(run.scene.val)} held-out views)")

@@ -65,17 +65,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _device(name: str):
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        return torch.device(name)
-    except RuntimeError:
-        raise KneasError(f"--device {name!r} is not a torch device; use cpu, cuda or auto") from None
-
-
 def output_folder(run_dir: Path, output: Optional[str], default_name: str) -> Path:
     """``-o DIR`` or ``RUN_DIR/<default_name>``, created and checked writable."""
     from ..engine.run_dir import check_writable
@@ -84,9 +73,9 @@ def output_folder(run_dir: Path, output: Optional[str], default_name: str) -> Pa
 
 
 def _load(args):
-    from ..engine.loading import load_run
+    from ..engine.loading import load_run, resolve_device
 
-    run = load_run(args.run, scene=args.scene, device=_device(args.device))
+    run = load_run(args.run, scene=args.scene, device=resolve_device(args.device))
     what = f"checkpoint {run.checkpoint_path}" + (f" (step {run.step})" if run.step is not None else "") if run.checkpoint_path else "volume.npy"
     _say(f"{run.config.method} run {run.run_dir}: {what}; scene {run.scene.name}")
     for note in run.notes:

@@ -22,8 +22,10 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from .. import presets, registry
-from ..config import to_dict, update_from_dict
-from ..errors import ConfigError, KneasError
+from ..config import to_dict
+from ..engine.loading import read_config_file, read_run_config, resume_config
+from ..engine.pipeline import train
+from ..errors import ConfigError
 from ..methods import TrainConfig
 from .common import run_cli
 
@@ -47,65 +49,57 @@ def _pop_option(argv: list[str], name: str, example: str) -> tuple[Optional[str]
     return value, out
 
 
-def load_config_file(path: str) -> dict:
-    """A saved run configuration (JSON) as a dict."""
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"config file {path} does not exist; give the config.json of a run folder")
-    try:
-        data = json.loads(p.read_text())
-    except ValueError as exc:
-        raise ConfigError(f"config file {path} is not valid JSON ({exc}); fix or regenerate it") from exc
-    if not isinstance(data, dict) or not isinstance(data.get("method"), str):
-        raise ConfigError(f"config file {path} has no 'method' entry; it must be a kneas run config (config.json)")
-    return data
+def parse_args(argv: Sequence[str]):
+    """Command line -> the (unresolved) run config of the chosen method.
 
-
-def parse_args(argv: Sequence[str]) -> TrainConfig:
-    """Command line -> (unresolved) :class:`TrainConfig`."""
+    ``--config FILE`` starts from a saved config; ``--resume RUN_DIR`` from the run's own
+    ``config.json``, and only settings that do not change what is trained may be given
+    with it (``loading.resume_config`` refuses the others in one line)."""
     import tyro
 
     argv = list(argv)
     resume, argv = _pop_option(argv, "--resume", "outputs/foot/k-neas/<timestamp>")
     config_file, argv = _pop_option(argv, "--config", "path/to/config.json")
     if resume is not None:
-        run = Path(resume)
-        if not (run / "config.json").is_file():
+        if not (Path(resume) / "config.json").is_file():
             raise ConfigError(f"--resume {resume}: no config.json there; give a run folder written by kneas-train "
                               "(DIR/<scene>/<method>/<timestamp>)")
         if config_file is not None:
             raise ConfigError("give either --resume RUN_DIR or --config FILE, not both (a resumed run uses its own config.json)")
-        config_file = str(run / "config.json")
+        start = read_run_config(Path(resume))
+    elif config_file is not None:
+        start = read_config_file(config_file)
+    else:
+        start = None
     specs = registry.methods()
     defaults = {name: dataclasses.replace(spec.config, method=name) for name, spec in specs.items()}
     descriptions = {name: spec.description for name, spec in specs.items()}
-    if config_file is not None:
-        data = load_config_file(config_file)
-        method = data["method"]
-        if method not in defaults:
-            raise ConfigError(f"config file {config_file} is for method {method!r}, which is not installed; available: {', '.join(defaults)}")
-        defaults[method] = update_from_dict(defaults[method], data)
+    if start is not None:
+        defaults[start.method] = start
         if not argv or argv[0].startswith("-") and argv[0] not in ("-h", "--help"):
-            argv.insert(0, method)
+            argv.insert(0, start.method)
+        elif resume is not None and argv[0] in defaults and argv[0] != start.method:
+            raise ConfigError(f"--resume {resume} is a {start.method} run; drop the method name {argv[0]!r}")
     sub = tyro.extras.subcommand_type_from_defaults(defaults, descriptions)
     config = tyro.cli(sub, args=argv, prog="kneas-train", description="Train a kneas method (subcommand = registered method).")
     if resume is not None:
-        config = dataclasses.replace(config, resume=str(resume))
+        config = resume_config(resume, config)
     return config
 
 
-def dry_run(config: TrainConfig) -> int:
+def dry_run(config) -> int:
     """Build the model (no scene data, bounds = placeholders), print the config and ``parameters: N``."""
     print(f"method: {config.method}  scene: {config.scene}  views: {config.views or 'all'}  seed: {config.seed}")
-    if config.reconstructor == "fdk":
-        print(f"reconstructor: fdk (filter {config.fdk_filter}); no model, no training")
+    if not isinstance(config, TrainConfig):
+        print(f"classical reconstruction: {config.algorithm} ({json.dumps(to_dict(config.reconstruction), separators=(',', ':'))}); "
+              "no model, no training")
         print("parameters: 0")
         return 0
     model = config.model.setup(scale=1.0)
     m = config.model
-    if model.has_sdf:
+    if model.has_surfaces:
         k_note = ""
-        if presets.k_is_chosen(config):
+        if presets.k_from_data(config):
             k_note = (" (method default; K is read from the bounds file at training time)" if config.bounds else
                       " (method default; K is chosen by BIC at training time, --num-materials K fixes it)")
         print(f"model: field={m.field} encoding={m.encoding} attenuation={m.attenuation} selector={m.selector} K={model.num_materials}{k_note} floater={'on' if m.floater else 'off'} bounds={config.bounds or config.bounds_source}")
@@ -115,33 +109,14 @@ def dry_run(config: TrainConfig) -> int:
     print(f"samples: {m.num_samples} train / {m.num_eval_samples} eval  rays: {config.datamanager.num_object_rays} object + {config.datamanager.num_air_rays} air  eikonal: {m.eikonal_mode or 'auto'} x{m.eikonal_fraction}")
     t = config.trainer
     print(f"trainer: epochs={t.epochs} prior_epochs={t.prior_epochs} lr={t.lr} decay x{t.lr_decay_factor} at {t.lr_decay_at:.0%}")
-    warm = f"fit to the FDK volume for {t.warm_start_steps} steps" if t.warm_start == "fdk" and t.warm_start_steps else "none (train from the initialisation)"
-    print(f"warm start: {warm}" + (f"  bounds volume: {config.bounds_volume}" if model.has_sdf and config.bounds_source == "auto" and not config.bounds else ""))
+    warm = (f"fit to the {t.warm_start.upper()} volume for {t.warm_start_steps} steps" if t.warm_start != "none" and t.warm_start_steps
+            else "none (train from the initialisation)")
+    print(f"warm start: {warm}" + (f"  bounds volume: {config.bounds_volume}" if presets.automatic_bounds(config) else ""))
     print(f"parameters: {model.num_parameters():,}")
     return 0
 
 
-def train(config: TrainConfig) -> int:
-    """Train: ``kneas_method.engine.train(config: TrainConfig) -> int | None`` (a function
-    exported by ``kneas_method.engine`` or a module ``engine/train.py`` with ``train``), imported lazily."""
-    import importlib
-    import inspect
-
-    engine = importlib.import_module("kneas_method.engine")
-    fn = getattr(engine, "train", None)
-    if fn is None:
-        try:
-            fn = importlib.import_module("kneas_method.engine.train")
-        except ModuleNotFoundError as exc:
-            if exc.name != "kneas_method.engine.train":
-                raise
-            raise KneasError("training is not built yet in this version of kneas; use --dry-run to check a configuration") from None
-    if inspect.ismodule(fn):
-        fn = fn.train
-    return fn(config) or 0
-
-
-def run(config: TrainConfig) -> int:
+def run(config) -> int:
     _, reason = presets.choose(config.preset)
     config = presets.resolve(config)
     print(reason)

@@ -112,18 +112,6 @@ class CTDataManager:
             "far": self.far,
         }
 
-    def view_rays(self, split: str, index: int) -> dict[str, Any]:
-        """All rays of one view: ``origins``/``directions`` [nV*nU, 3], ``projections`` [nV, nU], ``near``, ``far``."""
-        views = self.scene.train if split == "train" else self.scene.val
-        origins, directions = self.geometry.rays(np.asarray(views.angles)[index : index + 1], device=self.device)
-        return {
-            "origins": origins.reshape(-1, 3),
-            "directions": directions.reshape(-1, 3),
-            "projections": torch.as_tensor(np.asarray(views.projections[index]), dtype=torch.float32, device=self.device),
-            "near": self.near,
-            "far": self.far,
-        }
-
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
         """Sampler state: epoch, position in the permutation, the permutation, generator state."""

@@ -20,14 +20,17 @@ truth volume ``psnr3d``, ``ssim3d`` (exact unit conversion, peak 1, no fitting),
 
 from __future__ import annotations
 
-from typing import Callable, Optional, Sequence
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 import torch
 
 from ..evaluation.metrics import projection_metrics, volume_metrics
 
-__all__ = ["evaluate_model", "evaluate_volume", "render_views", "sample_volume", "model_metrics_from_arrays"]
+__all__ = ["evaluate_model", "evaluate_volume", "render_views", "sample_volume", "model_metrics_from_arrays",
+           "Evaluation", "evaluate_model_stage"]
 
 Progress = Optional[Callable[[int, int], None]]
 
@@ -127,16 +130,58 @@ def evaluate_model(model, scene, config, device, *, progress: Progress = None, r
     return (metrics, (proj, volume)) if return_arrays else metrics
 
 
-def evaluate_volume(volume, scene, *, return_arrays: bool = False):
+def evaluate_volume(volume, scene, *, return_arrays: bool = False, progress: Progress = None):
     """Metrics of a voxel volume [nx, ny, nz] (data units, the scene's grid).
 
     2D: the volume is forward-projected (trilinear, half-voxel steps) to every
     held-out view and scored like a model's rendering; 3D: compared with the
-    ground truth, if any.
+    ground truth, if any. ``progress(done_views, total_views)``.
     """
     from ..data.voxel_projector import project_volume
 
     vol = np.asarray(volume.detach().cpu() if hasattr(volume, "detach") else volume, dtype=np.float32)
-    proj = project_volume(vol, scene.geometry, np.asarray(scene.val.angles))
+    proj = project_volume(vol, scene.geometry, np.asarray(scene.val.angles), progress=progress)
     metrics = model_metrics_from_arrays(proj, scene, vol)
     return (metrics, (proj, vol)) if return_arrays else metrics
+
+
+@dataclass
+class Evaluation:
+    """A run's evaluation: the metrics dict, the rendered held-out projections ``[N, nV, nU]``,
+    the volume at the voxel centres ``[nx, ny, nz]`` (data units; None when not sampled) and seconds."""
+
+    metrics: dict
+    projections: np.ndarray
+    volume: Optional[np.ndarray]
+    seconds: float
+
+
+def evaluate_model_stage(model, scene, config, device, console) -> Evaluation:
+    """:func:`evaluate_model` with progress shown (views done / total, then voxels) on ``console``.
+
+    The volume at the voxel centres is always sampled: 3D metrics where the scene has a
+    ground truth, the slice figure in any case."""
+    from .progress import stage_progress
+
+    t0 = time.perf_counter()
+    nu, nv = scene.geometry.n_detector
+    n_views, n_voxels = len(scene.val), int(np.prod(scene.geometry.n_voxel))
+    with stage_progress(console, unit="views") as progress:
+        task = progress.add_task("evaluation", total=n_views, info=f"{n_views} held-out views x {_eval_samples(config)} samples")
+        proj = render_views(model, scene, scene.val.angles, device=device, chunk=_chunk(config), n_samples=_eval_samples(config),
+                            progress=lambda done, total: progress.update(task, completed=done / (nu * nv)))
+        vtask = progress.add_task("volume", total=n_voxels, info="attenuation at the voxel centres", unit="voxels")
+        volume = sample_volume(model, scene.geometry, device=device, progress=lambda d, t: progress.update(vtask, completed=d))
+    metrics = model_metrics_from_arrays(proj, scene, volume)
+    return Evaluation(metrics, proj, volume, time.perf_counter() - t0)
+
+
+def evaluate_volume_stage(volume, scene, console) -> Evaluation:
+    """:func:`evaluate_volume` with progress shown (held-out views projected) on ``console``."""
+    from .progress import stage_progress
+
+    t0 = time.perf_counter()
+    with stage_progress(console, unit="views") as progress:
+        task = progress.add_task("evaluation", total=len(scene.val), info="projecting the volume to the held-out views")
+        metrics, (proj, vol) = evaluate_volume(volume, scene, return_arrays=True, progress=lambda d, t: progress.update(task, completed=d))
+    return Evaluation(metrics, proj, vol, time.perf_counter() - t0)

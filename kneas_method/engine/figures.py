@@ -107,3 +107,35 @@ def plot_slice_comparison(pred, gt, path: str | Path, title: str = "") -> Path:
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return Path(path)
+
+
+def plot_validation(points, path: str | Path, title: str = "") -> Path:
+    """Validation 2D PSNR against step; ``points = [(step, psnr), ...]``."""
+    plt = _plt()
+    steps, values = zip(*points)
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(steps, values, "o-")
+    ax.set_xlabel("step")
+    ax.set_ylabel("validation PSNR2D [dB]")
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def run_figures(run_dir: str | Path, scene, projections, volume, title: str, trainer=None) -> None:
+    """The figures of a finished run in ``run_dir/figures``: loss curves and validation PSNR
+    (``trainer``, neural runs), held-out view 0 against its measurement, the volume's slices
+    against the ground truth (when known)."""
+    fig = Path(run_dir) / "figures"
+    fig.mkdir(parents=True, exist_ok=True)
+    if trainer is not None and trainer.history:
+        plot_loss_curves(trainer.loss_history(), fig / "loss_curves.png", title=title)
+        if trainer.history.get("val_psnr2d"):
+            plot_validation(trainer.history["val_psnr2d"], fig / "validation_psnr2d.png", title)
+    plot_projection_comparison(projections[0], np.asarray(scene.val.projections[0]), fig / "projection_val0.png",
+                               title=f"{title}: held-out view 0")
+    if volume is not None:
+        plot_slice_comparison(volume, None if scene.image is None else np.asarray(scene.image), fig / "slices.png",
+                              title=f"{title}: volume (data units)")

@@ -24,7 +24,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 import torch
@@ -32,6 +32,177 @@ import torch
 from ..errors import CheckpointError, KneasError, SceneError
 
 RESUME_HINT = "training must finish, or be resumed with `kneas-train --resume {run}`"
+
+# settings that ``--resume`` may change: they do not change what is trained
+RESUME_SAFE = ("device", "resume", "dry_run", "trainer.eval_chunk")
+# keys of older config.json files, dropped (or mapped) on load
+_LEGACY_KEYS = ("reconstructor",)
+
+
+def resolve_device(name: str, flag: str = "--device") -> torch.device:
+    """``auto`` -> cuda if available else cpu; anything else as given, checked.
+
+    Raises:
+        KneasError: not a torch device, or CUDA asked for where there is none.
+    """
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as exc:
+        raise KneasError(f"{flag} {name!r} is not a torch device ({exc}); use auto, cpu or cuda") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise KneasError(f"{flag} {name!r} asked for but no CUDA GPU is available; use {flag} cpu or auto")
+    return device
+
+
+def config_from_dict(data: Any, where: str):
+    """A run config from the dict of a ``config.json`` (``where`` names the file in errors):
+    the registered method's defaults with the file's values applied and checked."""
+    from .. import registry
+    from ..config import update_from_dict
+
+    if not isinstance(data, dict) or not isinstance(data.get("method"), str):
+        raise KneasError(f"{where} has no 'method' entry; it is not a kneas run config (config.json)")
+    data = dict(data)
+    for key in _LEGACY_KEYS:
+        data.pop(key, None)
+    if "fdk_filter" in data:  # older neural configs kept the FDK window at the top
+        data.setdefault("reconstruction", {})["filter"] = data.pop("fdk_filter")
+    if isinstance(data.get("model"), dict) and data["model"].get("reference") is False:
+        data["model"] = {k: v for k, v in data["model"].items() if k != "reference"}
+    method = data["method"]
+    specs = registry.methods()
+    if method not in specs:
+        raise KneasError(f"{where} is a run of method {method!r}, which is not installed here; installed: {', '.join(specs)}")
+    base = dataclasses.replace(specs[method].config, method=method)
+    data = _drop_other_kind(base, data)
+    return update_from_dict(base, data, where=where)
+
+
+def _drop_other_kind(base, data: dict) -> dict:
+    """Older kneas wrote FDK runs with the neural settings too; a classical config ignores them."""
+    from ..methods import TrainConfig
+
+    if isinstance(base, TrainConfig):
+        return data
+    own = {f.name for f in dataclasses.fields(base)}
+    neural = {f.name for f in dataclasses.fields(TrainConfig)} - own
+    return {k: v for k, v in data.items() if k not in neural}
+
+
+def read_config_file(path: Union[str, Path]):
+    """A run config from a JSON file (``kneas-train --config FILE``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise KneasError(f"config file {path} does not exist; give the config.json of a run folder")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise KneasError(f"config file {path} is not valid JSON ({exc}); fix or regenerate it") from None
+    return config_from_dict(data, str(path))
+
+
+def read_run_config(run_dir: Path):
+    """The run's config from ``RUN_DIR/config.json`` (KneasError when missing or foreign)."""
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise KneasError(f"{run_dir} has no config.json, so it is not a complete kneas run folder; " + RESUME_HINT.format(run=run_dir))
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise KneasError(f"{path} is not valid JSON ({exc}); the run folder is damaged, train the run again") from None
+    return config_from_dict(data, str(path))
+
+
+def resume_config(run_dir: Union[str, Path], given=None):
+    """The config a ``--resume RUN_DIR`` run continues with: the run's own ``config.json``,
+    plus the settings given on the command line that do not change what is trained
+    (``RESUME_SAFE``). ``given`` is the command line parsed on top of the saved config.
+
+    Raises:
+        KneasError: one line naming every other changed setting, and how to start a new
+        run with it instead.
+    """
+    from ..config import to_dict
+
+    run_dir = Path(run_dir)
+    saved = read_run_config(run_dir)
+    if given is None:
+        return dataclasses.replace(saved, resume=str(run_dir))
+    changed = [k for k, (a, b) in _flat_diff(to_dict(saved), to_dict(given)).items() if k not in RESUME_SAFE]
+    if changed:
+        diff = _flat_diff(to_dict(saved), to_dict(given))
+        what = ", ".join(f"{k} ({diff[k][0]!r} -> {diff[k][1]!r})" for k in changed)
+        flags = " ".join(f"--{k.replace('_', '-')} {_flag_value(diff[k][1])}" for k in changed)
+        raise KneasError(f"--resume continues {run_dir} with its own settings, but the command line changes {what}; "
+                         f"start a new run with them instead: kneas-train --config {run_dir / 'config.json'} {flags}")
+    return dataclasses.replace(given, resume=str(run_dir))
+
+
+def _flag_value(value) -> str:
+    if isinstance(value, (list, tuple)):
+        return " ".join(str(v) for v in value)
+    return str(value)
+
+
+def _flat_diff(a: dict, b: dict, prefix: str = "") -> dict[str, tuple]:
+    """``{"trainer.epochs": (2, 3), ...}``: leaves of two nested dicts that differ."""
+    out: dict[str, tuple] = {}
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key), b.get(key)
+        name = f"{prefix}{key}"
+        if isinstance(va, dict) and isinstance(vb, dict) and key not in ("field_options", "encoding_options",
+                                                                          "attenuation_options", "selector_options"):
+            out.update(_flat_diff(va, vb, name + "."))
+        elif va != vb:
+            out[name] = (va, vb)
+    return out
+
+
+def holdout_views(scene, fraction: float = 0.1, at_most: int = 10):
+    """A scene with no held-out views (real scans): every k-th training view is held out
+    for the 2D metrics (``fraction`` of them, at least 1, at most ``at_most``) and the
+    rest kept for training. Deterministic; recorded in ``scene.meta["holdout"]``."""
+    n = len(scene.train)
+    if n < 2:
+        raise KneasError(f"scene {scene.name!r} has {n} projection(s) and no held-out views; at least 2 projections are needed")
+    k = max(1, min(at_most, int(round(fraction * n))))
+    held = np.unique(np.round(np.linspace(0, n - 1, k + 2)[1:-1]).astype(int))
+    keep = np.setdiff1d(np.arange(n), held)
+    meta = {**scene.meta, "holdout": {"held_out_training_views": [int(i) for i in held], "of": n,
+                                      "note": "the scene has no held-out views: these training views were held out for the 2D metrics"}}
+    return dataclasses.replace(scene, train=scene.train.subset(keep), val=scene.train.subset(held), meta=meta)
+
+
+def load_scene(config, scene=None, *, say: Optional[Callable[[str], None]] = None):
+    """The scene a run trains or is evaluated on.
+
+    ``scene=None``: the run's own (``config.scene`` through ``resolve_scene`` with
+    ``config.data_dir``, then ``config.views`` training views); a name, a path or a
+    :class:`Scene`: that scene, as given. A scene without held-out views gets some of
+    its training views held out (:func:`holdout_views`). ``say`` receives progress lines.
+    """
+    from ..data.scene import Scene
+    from ..data.scenes import resolve_scene
+
+    note = (lambda msg: say(f"  {msg}")) if say is not None else None
+    if isinstance(scene, Scene):
+        sc = scene
+    elif scene is not None:
+        sc = resolve_scene(str(scene), data_dir=config.data_dir, progress=note)
+    else:
+        sc = resolve_scene(config.scene, data_dir=config.data_dir, progress=note)
+        full = len(sc.train)
+        sc = sc.subsample_views(config.views)
+        if say is not None:
+            say(f"scene: {sc.name} from {sc.source}; {len(sc.train)} of {full} training views, {len(sc.val)} held-out views, "
+                f"volume {tuple(sc.geometry.n_voxel)}, detector {tuple(sc.geometry.n_detector)}")
+    if len(sc.val) == 0:
+        sc = holdout_views(sc)
+        if say is not None:
+            say(f"scene: no held-out views; {len(sc.val)} of the training views are held out for the 2D metrics")
+    return sc
 
 
 @dataclass
@@ -63,6 +234,11 @@ class LoadedRun:
     def method(self) -> str:
         return self.config.method
 
+    @property
+    def has_surfaces(self) -> bool:
+        """True when the run's model has signed distance fields (materials, meshes from SDFs)."""
+        return self.model is not None and self.model.has_surfaces
+
 
 def _run_dir_of(path: Path) -> tuple[Path, Optional[Path]]:
     """``(run_dir, checkpoint file or None)`` for a run folder or a checkpoint path."""
@@ -75,59 +251,12 @@ def _run_dir_of(path: Path) -> tuple[Path, Optional[Path]]:
     raise KneasError(f"{path} does not exist; give a run folder (DIR/<scene>/<method>/<timestamp>) or a checkpoint file")
 
 
-def read_run_config(run_dir: Path):
-    """The run's TrainConfig from ``config.json`` (KneasError when missing or foreign)."""
-    from .. import registry
-    from ..config import update_from_dict
-
-    path = run_dir / "config.json"
-    if not path.is_file():
-        raise KneasError(
-            f"{run_dir} has no config.json, so it is not a complete kneas run folder; "
-            + RESUME_HINT.format(run=run_dir)
-        )
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise KneasError(f"{path} is not valid JSON ({exc}); the run folder is damaged, train the run again") from None
-    if not isinstance(data, dict) or not isinstance(data.get("method"), str):
-        raise KneasError(f"{path} has no 'method' entry; it is not a kneas run config")
-    method = data["method"]
-    specs = registry.methods()
-    if method in specs:
-        base = dataclasses.replace(specs[method].config, method=method)
-    elif method == "fdk":  # an FDK run read by a kneas without the fdk method entry point
-        from ..methods import TrainConfig
-
-        base = TrainConfig(method="fdk")
-        known = {f.name for f in dataclasses.fields(TrainConfig)}
-        data = {k: v for k, v in data.items() if k in known}
-    else:
-        raise KneasError(f"{path} is a run of method {method!r}, which is not installed here; installed: {', '.join(specs)}")
-    return update_from_dict(base, data, where="config.json")
-
-
-def _resolve_scene(config, scene, run_dir: Path, notes: list[str]):
-    from ..data.scene import Scene
-    from ..data.scenes import resolve_scene
-
-    if isinstance(scene, Scene):
-        return scene
-    if scene is not None:
-        return resolve_scene(str(scene))
-    try:
-        sc = resolve_scene(config.scene)
-    except SceneError as exc:
-        raise KneasError(f"the run's training scene cannot be opened here ({exc}); pass the scene with --scene") from None
-    return sc.subsample_views(config.views)
-
-
 def _check_same_box(config, scene, notes: list[str]) -> None:
     """A model's coordinates are the training scene's model units: another scene must share its volume box."""
     from ..data.scenes import resolve_scene
 
     try:
-        train_scene = resolve_scene(config.scene)
+        train_scene = resolve_scene(config.scene, data_dir=config.data_dir)
     except KneasError:
         notes.append(f"training scene {config.scene!r} is not available here; assuming {scene.name!r} has the same volume box")
         return
@@ -195,25 +324,30 @@ def load_run(
     """
     from ..engine.checkpoint import list_checkpoints, load_checkpoint_file, load_latest_checkpoint
 
-    device = torch.device(device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise KneasError(f"device {device} asked for but no CUDA GPU is available; use --device cpu")
+    device = resolve_device(str(device))
     path = Path(run_dir_or_checkpoint).expanduser()
     run_dir, ckpt_file = _run_dir_of(path)
     notes: list[str] = []
-    config = read_run_config(run_dir)
-    sc = _resolve_scene(config, scene, run_dir, notes)
+    config = dataclasses.replace(read_run_config(run_dir), resume=str(run_dir))
+    try:
+        sc = load_scene(config, scene)
+    except SceneError as exc:
+        if scene is not None:
+            raise
+        raise KneasError(f"the run's training scene cannot be opened here ({exc}); pass the scene with --scene") from None
     if scene is not None:
         _check_same_box(config, sc, notes)
 
-    if config.method == "fdk" or getattr(config, "reconstructor", "neural") == "fdk":
+    from ..methods import TrainConfig
+
+    if not isinstance(config, TrainConfig):  # a classical run: its volume
         vol_path = run_dir / "volume.npy"
         if not vol_path.is_file():
-            raise KneasError(f"FDK run {run_dir} has no volume.npy; " + RESUME_HINT.format(run=run_dir))
+            raise KneasError(f"{config.method} run {run_dir} has no volume.npy; " + RESUME_HINT.format(run=run_dir))
         try:
             volume = np.load(vol_path, allow_pickle=False).astype(np.float32, copy=False)
         except (OSError, ValueError) as exc:
-            raise KneasError(f"{vol_path} cannot be read ({exc}); run the FDK reconstruction again") from None
+            raise KneasError(f"{vol_path} cannot be read ({exc}); run the {config.method} reconstruction again") from None
         if tuple(volume.shape) != tuple(sc.geometry.n_voxel):
             raise KneasError(f"{vol_path} has shape {volume.shape} but scene {sc.name!r} has {tuple(sc.geometry.n_voxel)} voxels; pass the scene it was reconstructed on")
         return LoadedRun(config, None, volume, sc, run_dir, None, None, notes)

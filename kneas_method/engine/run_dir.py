@@ -57,7 +57,7 @@ def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES, flag:
 
 def create_run_dir(output_dir: str | Path, scene: str, method: str, needed_bytes: int = MIN_FREE_BYTES) -> Path:
     """A new, empty run folder ``output_dir/<scene>/<method>/<timestamp>[-N]``."""
-    parent = check_writable(Path(output_dir) / _safe(scene) / _safe(method), needed_bytes)
+    parent = check_writable(Path(output_dir) / safe_name(scene) / safe_name(method), needed_bytes)
     base = timestamp()
     for n in range(1000):
         run = parent / (base if n == 0 else f"{base}-{n}")
@@ -71,8 +71,9 @@ def create_run_dir(output_dir: str | Path, scene: str, method: str, needed_bytes
     raise KneasError(f"could not create a new run folder under {parent}")
 
 
-def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name)) or "scene"
+def safe_name(name: str) -> str:
+    """A folder name from a scene or method name: letters, digits, ``-_.``; others become ``_``."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name)) or "x"
 
 
 def _json_default(value: Any):
@@ -113,3 +114,12 @@ def read_json(path: str | Path, what: str = "file") -> Any:
         return json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise KneasError(f"{what} {path} is not valid JSON ({exc}); fix or delete it") from None
+
+
+def save_run_config(run_dir: str | Path, config) -> Path:
+    """``RUN_DIR/config.json``: the resolved config, as ``kneas-train --config`` re-runs it."""
+    import dataclasses
+
+    from ..config import to_dict
+
+    return write_json(Path(run_dir) / "config.json", to_dict(dataclasses.replace(config, resume=None, dry_run=False)))

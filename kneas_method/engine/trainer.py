@@ -22,7 +22,6 @@ non-finite.
 
 from __future__ import annotations
 
-import math
 import signal
 import threading
 import time
@@ -206,6 +205,10 @@ class Trainer:
         self.last_checkpoint = path
         return self.last_checkpoint
 
+    def loss_history(self) -> dict[str, list[tuple[float, float]]]:
+        """The recorded loss terms ``{name: [(step, value), ...]}`` (no learning rate or validation)."""
+        return {k: [tuple(p) for p in v] for k, v in self.history.items() if k not in ("lr", "val_psnr2d")}
+
     # -------------------------------------------------------------- helpers
     def _print(self, msg: str) -> None:
         if self.console is not None:
@@ -287,7 +290,6 @@ class Trainer:
         self.model.train()
         progress = stage_progress(self.console)
         started = time.perf_counter()
-        first_step, t_begin = self.step, time.perf_counter()
         last_info = ""
         with progress, _DeferredInterrupt() as interrupt:
             task = progress.add_task(self.label, total=self.total_steps, completed=self.step, info="")
@@ -328,13 +330,6 @@ class Trainer:
                     if self.step % 5 == 0 or self.step == self.total_steps:
                         last_info = format_losses({k: v for k, v in values.items() if k != "total"})
                     progress.update(task, completed=self.step, info=last_info)
-                    if not progress.console.is_terminal and (self.step % max(1, self.total_steps // 10) == 0):
-                        # logs (no live bar): a plain line every 10 % of the stage
-                        done = self.step - first_step
-                        rate = done / max(time.perf_counter() - t_begin, 1e-9)
-                        eta = (self.total_steps - self.step) / max(rate, 1e-9)
-                        progress.console.print(f"{self.label} step {self.step}/{self.total_steps}: {rate:.2f} steps/s, "
-                                               f"eta {eta:.0f} s, {last_info}", soft_wrap=True)
                     if on_step is not None:
                         on_step(self.step)
                     epoch_done = self.step % self.steps_per_epoch == 0

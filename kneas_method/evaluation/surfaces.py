@@ -300,7 +300,7 @@ def material_metrics(
     """Per-material label Dice and surface errors of an SDF model (module docs).
 
     Args:
-        model: CTModel with an SDF (``has_sdf``), or an object with ``query`` giving
+        model: CTModel with an SDF (``has_surfaces``), or an object with ``query`` giving
             ``weights``, ``distances``, ``mu_materials`` and ``num_materials``.
         scene: built-in scene (``labels`` and ``membership`` present).
         factor: fine-grid factor for the surfaces (2 = twice the voxel resolution).
@@ -314,7 +314,7 @@ def material_metrics(
         ``chamfer_gt_to_pred_mm``, ``fscore``, ``precision``, ``recall``), the
         means ``dice_mean``, ``chamfer_mm_mean``, ``fscore_mean`` and the settings.
     """
-    if not getattr(model, "has_sdf", True):
+    if not getattr(model, "has_surfaces", True):
         raise KneasError("material metrics need a model with signed distance fields; NAF/FDK volumes have no materials")
     if scene.labels is None:
         raise KneasError(f"scene {scene.name!r} has no ground-truth labels; material metrics need a built-in scene")

@@ -14,7 +14,7 @@ PNG files, matplotlib Agg, reusing :mod:`kneas_method.engine.figures`:
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 

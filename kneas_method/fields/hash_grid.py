@@ -34,8 +34,8 @@ zero-filling the 48 MB table gradient once per level).
 :meth:`HashGridEncoding.encode_with_jacobian` returns the features and their exact spatial
 Jacobian from the same gather (forward mode): the SDF field uses it to get all K distance
 gradients for the eikonal term with a first-order backward only (no double backward).
-:meth:`HashGridEncoding.encode_reference` is the straightforward per-level loop, kept as the
-benchmark reference (``reference = True``; ``benchmarks/step.py --reference``).
+The straightforward per-level loop is kept outside the package, as the test oracle and the
+benchmark reference (``benchmarks/naive.py``; ``benchmarks/step.py --reference``).
 
 tiny-cuda-nn
 ------------
@@ -242,8 +242,6 @@ class HashGridEncoding(nn.Module):
     """
 
     implementation = "torch"
-    #: use the straightforward per-level loop (:meth:`encode_reference`); a benchmark switch
-    reference: bool = False
 
     def __init__(self, config: HashGridConfig, force_hash: bool = False):
         super().__init__()
@@ -390,46 +388,11 @@ class HashGridEncoding(nn.Module):
         jac = torch.stack([dxo, dyo, dzo], 1) * scale  # [P, 3, L, F]
         return out.reshape(P, L * F), jac.reshape(P, 3, L * F)
 
-    def encode_reference(self, x: torch.Tensor) -> torch.Tensor:
-        """The straightforward implementation, kept for comparison (``reference = True``).
-
-        A Python loop over levels: per level, the 8 corner rows (dense index or
-        :func:`spatial_hash`), one ``index_select`` from the level's slice of ``table`` and
-        the 8 trilinear weights. Same values as :meth:`encode`; its backward zero-fills a
-        table-sized gradient once per level (14 x 48 MB for the paper grid), which makes it
-        roughly 3x slower than the vectorised :meth:`encode`.
-        """
-        _check_points(x)
-        lead = x.shape[:-1]
-        x = x.reshape(-1, 3)
-        p = ((x.to(self.table.dtype) + 1.0) * 0.5).clamp(0.0, 1.0)
-        bits = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.int64, device=x.device)  # [8, 3]
-        outs = []
-        for level in range(self.n_levels):
-            res = self.layout.resolutions[level]
-            pos = p * res
-            cell = torch.clamp(torch.floor(pos.detach()), max=res - 1)
-            frac = pos - cell  # [P, 3]
-            vert = cell.to(torch.int64)[:, None, :] + bits  # [P, 8, 3]
-            if self.layout.hashed[level]:
-                idx = spatial_hash(vert, self.layout.sizes[level])
-            else:
-                r1 = res + 1
-                idx = vert[..., 0] + vert[..., 1] * r1 + vert[..., 2] * r1 * r1  # [P, 8]
-            w3 = torch.where(bits.bool(), frac[:, None, :], 1.0 - frac[:, None, :])  # [P, 8, 3]
-            w = w3[..., 0] * w3[..., 1] * w3[..., 2]  # [P, 8] trilinear weights
-            feats = self.level_table(level).index_select(0, idx.reshape(-1)).view(-1, 8, self.n_features)
-            outs.append((w[..., None] * feats).sum(1))  # [P, F]
-        return torch.cat(outs, -1).reshape(*lead, self.n_output_dims)
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x [P, 3]`` in ``[-1, 1]^3`` (model units) -> features ``[P, L*F]``.
 
-        Extra leading dimensions are allowed: ``[..., 3] -> [..., L*F]``. With
-        ``self.reference = True`` the per-level loop :meth:`encode_reference` is used.
+        Extra leading dimensions are allowed: ``[..., 3] -> [..., L*F]``.
         """
-        if self.reference:
-            return self.encode_reference(x)
         return self.encode(x)
 
 

@@ -14,34 +14,29 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..config import InstantiateConfig
 from ..errors import ConfigError
-from .sdf_field import encode_points
+from .base import Field, FieldConfig, FieldOutputs, encode_points
 
 _ACTIVATIONS = {"softplus": F.softplus, "relu": F.relu, "sigmoid": torch.sigmoid}
 
 
 @dataclass
-class NAFFieldConfig(InstantiateConfig):
+class NAFFieldConfig(FieldConfig):
     """Attributes: hidden_dim (64), num_hidden_layers (2), activation (softplus|relu|sigmoid), bound (1.0, model units)."""
 
     _target = "kneas_method.fields.naf_field:NAFField"
     hidden_dim: int = 64
     num_hidden_layers: int = 2
     activation: str = "softplus"
-    bound: float = 1.0
 
 
-class NAFField(nn.Module):
-    """``forward(points [P, 3] model units) -> mu [P]`` (data units, >= 0). ``has_sdf = False``."""
-
-    has_sdf = False
+class NAFField(Field):
+    """``get_outputs(points [P, 3] model units)`` gives ``mu [P]`` (data units, >= 0); no surfaces."""
 
     def __init__(self, config: NAFFieldConfig, *, encoding: nn.Module, num_materials: int | None = None):
-        super().__init__()
+        super().__init__(config)
         if config.activation not in _ACTIVATIONS:
             raise ConfigError(f"NAF field activation {config.activation!r} is unknown; choose one of {sorted(_ACTIVATIONS)}")
-        self.config = config
         self.encoding = encoding
         sizes = [encoding.n_output_dims] + [config.hidden_dim] * config.num_hidden_layers + [1]
         layers: list[nn.Module] = []
@@ -52,5 +47,5 @@ class NAFField(nn.Module):
         self.mlp = nn.Sequential(*layers)
         self._act = _ACTIVATIONS[config.activation]
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self._act(self.mlp(encode_points(self.encoding, points, self.config.bound))[:, 0])
+    def get_outputs(self, points: torch.Tensor, with_gradients: bool = False) -> FieldOutputs:
+        return FieldOutputs(mu=self._act(self.mlp(encode_points(self.encoding, points, self.bound))[:, 0]))

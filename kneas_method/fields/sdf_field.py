@@ -16,29 +16,19 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..config import InstantiateConfig
+from ..errors import ConfigError
 
-
-def encode_points(encoding: nn.Module, points: torch.Tensor, bound: float) -> torch.Tensor:
-    """Encode points [P, 3] (model units) -> [P, F].
-
-    Points are divided by ``bound`` and clamped to ``[-1, 1]^3``, the encoding's
-    domain; outside the box the encoding is constant (so ``d`` has zero spatial
-    gradient there: the eikonal term skips such points, see ``losses.eikonal``).
-    """
-    x = (points / bound).clamp(-1.0, 1.0)
-    return encoding(x).float()
+from .base import Field, FieldConfig, FieldOutputs, encode_points
 
 
 @dataclass
-class SDFFieldConfig(InstantiateConfig):
+class SDFFieldConfig(FieldConfig):
     """SDF network on top of an encoding.
 
     Attributes:
         hidden_dim: width of the single hidden layer (paper: 64).
         feature_dim: size of the feature vector ``f`` (paper: 8).
-        bound: points are divided by this before encoding (model units; the
-            scene fits the unit sphere, so 1.0).
+        bound: see :class:`~kneas_method.fields.base.FieldConfig`.
         distance_bias: initial bias of the distance outputs (model units). The
             default 0.1 starts every material "outside" (``Omega < 0.5``), i.e. an
             empty volume: most of a CT volume is air, and a field that starts
@@ -46,25 +36,21 @@ class SDFFieldConfig(InstantiateConfig):
     """
 
     _target = "kneas_method.fields.sdf_field:SDFField"
+    has_surfaces = True
     hidden_dim: int = 64
     feature_dim: int = 8
-    bound: float = 1.0
     distance_bias: float = 0.1
 
 
-class SDFField(nn.Module):
-    """Encoding + SDF MLP. ``forward(points [P, 3]) -> (distances [P, K], features [P, feature_dim])``.
-
-    ``has_sdf = True`` marks the field protocol the model uses (distances + features).
-    """
-
-    has_sdf = True
+class SDFField(Field):
+    """Encoding + SDF MLP: ``get_outputs(points [P, 3])`` gives ``distances [P, K]`` and ``features [P, feature_dim]``."""
 
     def __init__(self, config: SDFFieldConfig, *, encoding: nn.Module, num_materials: int):
-        super().__init__()
-        self.config = config
+        super().__init__(config)
+        if not isinstance(num_materials, int) or isinstance(num_materials, bool) or num_materials < 1:
+            raise ConfigError(f"num_materials is {num_materials!r}; a surface field needs a whole number K >= 1 (--num-materials)")
         self.encoding = encoding
-        self.num_materials = int(num_materials)
+        self.num_materials = self.num_distances = int(num_materials)
         self.feature_dim = config.feature_dim
         self.mlp = nn.Sequential(
             nn.Linear(encoding.n_output_dims, config.hidden_dim),
@@ -75,20 +61,18 @@ class SDFField(nn.Module):
             with torch.no_grad():
                 self.mlp[-1].bias[: self.num_materials] += config.distance_bias
 
-    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.mlp(encode_points(self.encoding, points, self.config.bound))
-        return out[:, : self.num_materials], out[:, self.num_materials :]
-
-    def distances(self, points: torch.Tensor) -> torch.Tensor:
-        """Signed distances only: [P, 3] -> [P, K] (model units)."""
-        return self.forward(points)[0]
+    def get_outputs(self, points: torch.Tensor, with_gradients: bool = False) -> FieldOutputs:
+        if with_gradients:
+            distances, features, grads = self.forward_with_gradients(points)
+            return FieldOutputs(distances=distances, features=features, distance_gradients=grads)
+        out = self.mlp(encode_points(self.encoding, points, self.bound))
+        return FieldOutputs(distances=out[:, : self.num_materials], features=out[:, self.num_materials :])
 
     @property
-    def has_analytic_gradients(self) -> bool:
+    def supports_gradients(self) -> bool:
         """True when :meth:`forward_with_gradients` works: the encoding gives its
-        Jacobian (torch hash grid, not in ``reference`` mode) and the MLP is Linear/ReLU only."""
-        enc = self.encoding
-        return (hasattr(enc, "encode_with_jacobian") and not getattr(enc, "reference", False)
+        Jacobian (the torch hash grid) and the MLP is Linear/ReLU only."""
+        return (callable(getattr(self.encoding, "encode_with_jacobian", None))
                 and all(isinstance(m, (nn.Linear, nn.ReLU)) for m in self.mlp))
 
     def forward_with_gradients(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -108,7 +92,7 @@ class SDFField(nn.Module):
             ``distances [P, K]`` (model units), ``features [P, feature_dim]``,
             ``grads [P, K, 3]`` (d distance / d point, unit-free).
         """
-        bound = self.config.bound
+        bound = self.bound
         x = points / bound
         inside = ((x >= -1.0) & (x <= 1.0)).to(points.dtype)  # clamp passes the gradient inside, ends included
         h, jac = self.encoding.encode_with_jacobian(x.clamp(-1.0, 1.0))  # [P, E], [P, 3, E]
@@ -144,7 +128,7 @@ class SurfaceBoundary(nn.Module):
     def __init__(self, s_init: float = 20.0):
         super().__init__()
         if s_init <= 0:
-            raise ValueError(f"s_init must be positive, got {s_init}")
+            raise ConfigError(f"model.s_init must be a positive sharpness (1/model unit), got {s_init}")
         self.log_s = nn.Parameter(torch.tensor(math.log(float(s_init)) / self.LOG_SCALE))
 
     @property

@@ -14,10 +14,9 @@ How the exact gradients are obtained (fastest first; all give the same values):
 
 1. the caller passes ``grads`` computed in forward mode alongside the distances
    (``SDFField.forward_with_gradients``, torch hash grid): no double backward at all;
-2. ``autograd`` with ``batched=True``: one ``torch.autograd.grad(...,
-   is_grads_batched=True)`` call for all K distance fields;
-3. ``reference=True`` (the straightforward implementation, kept for comparison):
-   K separate ``torch.autograd.grad(d_k.sum(), x, create_graph=True)`` calls.
+2. ``autograd``: one ``torch.autograd.grad(..., is_grads_batched=True)`` call for
+   all K distance fields (the straightforward K separate double backwards are kept
+   as the test oracle and benchmark reference in ``benchmarks/naive.py``).
 """
 
 from __future__ import annotations
@@ -61,11 +60,6 @@ class EikonalLoss:
         if not self.step > 0:
             raise ConfigError(f"eikonal fd_step must be > 0 (model units), got {self.step}")
 
-    #: straightforward path: K separate double-backward calls (benchmark reference)
-    reference: bool = False
-    #: autograd path: all K gradients from one batched backward call
-    batched: bool = True
-
     def gradients(self, distance_fn: DistanceFn, points: torch.Tensor, distances: torch.Tensor | None = None) -> torch.Tensor:
         """Spatial gradients [P, K, 3] of the distances at ``points``."""
         if self.config.mode == "autograd":
@@ -74,16 +68,13 @@ class EikonalLoss:
                 with torch.enable_grad():
                     distances = distance_fn(points)
             K = distances.shape[-1]
-            if self.batched and not self.reference and K > 1:
-                eye = torch.eye(K, device=distances.device, dtype=distances.dtype)
-                tangents = eye[:, None, :].expand(K, *distances.shape).contiguous()  # [K, P, K]
-                (g,) = torch.autograd.grad(distances, points, tangents, create_graph=True, is_grads_batched=True)
-                return g.transpose(0, 1)  # [P, K, 3]
-            grads = []
-            for k in range(K):
-                (g,) = torch.autograd.grad(distances[:, k].sum(), points, create_graph=True, retain_graph=True)
-                grads.append(g)
-            return torch.stack(grads, dim=1)
+            if K == 1:
+                (g,) = torch.autograd.grad(distances.sum(), points, create_graph=True)
+                return g[:, None, :]
+            eye = torch.eye(K, device=distances.device, dtype=distances.dtype)
+            tangents = eye[:, None, :].expand(K, *distances.shape).contiguous()  # [K, P, K]
+            (g,) = torch.autograd.grad(distances, points, tangents, create_graph=True, is_grads_batched=True)
+            return g.transpose(0, 1)  # [P, K, 3]
         h = self.step
         x = points.detach()
         offsets = torch.eye(3, device=x.device, dtype=x.dtype) * h  # [3, 3]

@@ -1,0 +1,21 @@
+"""The one console every command and stage prints to, and the exit codes.
+
+``say(text)`` prints one line, never wrapped (paths stay copyable and greppable).
+Text with rich markup (``[yellow]...[/]``) is rendered on a terminal; when
+output goes to a file or a pipe, rich prints no colour codes.
+"""
+
+from __future__ import annotations
+
+from rich.console import Console
+
+console = Console(stderr=False, highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def say(text: str, markup: bool = True) -> None:
+    """One message line on the console, never wrapped."""
+    console.print(text, soft_wrap=True, markup=markup)

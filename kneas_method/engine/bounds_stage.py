@@ -1,0 +1,220 @@
+"""The bounds stage of a neural run with surfaces (SPEC §4): prior or classical volume -> GMM -> bounds.
+
+* :func:`estimate_bounds` ``(config, scene, run_dir, device) -> BoundsResult``: from
+  ``--bounds FILE``, ``model.alphas/betas``, the NeAS wide defaults, or automatically:
+  the GMM (``bounds.GMMBounds``) fitted to the voxel values of the bounds volume, which
+  is a trained NeAS-1M prior (the paper; :func:`run_prior`) or a classical reconstruction
+  of the training views (``--bounds-volume fdk``). K by BIC unless given. Writes the
+  GMM figure; the caller keeps the result as ``bounds.json``.
+* :func:`run_prior`: trains (or reuses) the NeAS-1M prior in a run folder of its own,
+  ``DIR/<scene>/neas-1m-prior/<key>/``, keyed on the training data, views, preset, seed
+  and the prior's settings; its attenuation at the voxel centres is kept as ``volume.npy``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from .. import registry
+from ..config import to_dict
+from ..console import say
+from ..errors import ConfigError
+from .evaluate import sample_volume
+from .run_dir import safe_name, write_json
+
+PRIOR_METHOD = "neas-1m"
+PRIOR_FOLDER = "neas-1m-prior"
+
+
+@dataclass
+class BoundsResult:
+    """Attenuation bounds per material (data units, 1/m) and where they came from.
+
+    Attributes:
+        alphas, betas: length K each.
+        K: number of materials.
+        source: one line (``gmm (gmm) on the FDK``, ``file b.json``, ...).
+        prior_wall_time_s: seconds spent training the prior (0 when none or reused).
+        details: the rest of ``bounds.json`` (the GMM fit, warnings, which volume, ...).
+    """
+
+    alphas: list[float]
+    betas: list[float]
+    K: int
+    source: str
+    prior_wall_time_s: float = 0.0
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {"alphas": [float(a) for a in self.alphas], "betas": [float(b) for b in self.betas], "K": int(self.K),
+                "source": self.source, **self.details, "prior_wall_time_s": float(self.prior_wall_time_s)}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "BoundsResult":
+        rest = {k: v for k, v in data.items() if k not in ("alphas", "betas", "K", "source", "prior_wall_time_s")}
+        return cls(list(data["alphas"]), list(data["betas"]), int(data["K"]), str(data.get("source", "")),
+                   float(data.get("prior_wall_time_s", 0.0)), rest)
+
+
+@dataclass
+class PriorResult:
+    """The NeAS-1M prior: its volume ``[nx, ny, nz]`` (data units), folder, training seconds, reused?"""
+
+    volume: np.ndarray
+    folder: Path
+    seconds: float
+    reused: bool
+
+
+def scene_fingerprint(scene) -> str:
+    """A hash of what training sees: geometry, training angles and projections, and the held-out angles."""
+    h = hashlib.sha256()
+    h.update(json.dumps(scene.geometry.to_mm(), sort_keys=True, default=str).encode())
+    for arr in (scene.train.angles, scene.train.projections, scene.val.angles):
+        a = np.ascontiguousarray(np.asarray(arr, dtype=np.float32))
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def prior_config(config):
+    """The resolved NeAS-1M prior config for a run: the method's NeAS-1M settings with
+    the run's preset-resolved encoding, samples, rays and schedule (``prior_epochs``)."""
+    base = registry.load("methods", PRIOR_METHOD).config.model
+    model = dataclasses.replace(
+        config.model,
+        field=base.field, field_options=dict(base.field_options), attenuation=base.attenuation, attenuation_options=dict(base.attenuation_options),
+        selector=base.selector, selector_options=dict(base.selector_options), num_materials=1,
+        floater=False, alphas=None, betas=None,
+    )
+    trainer = dataclasses.replace(config.trainer, epochs=config.trainer.prior_epochs)
+    return dataclasses.replace(config, method=PRIOR_METHOD, num_materials=1, bounds=None, bounds_source="wide", resume=None,
+                               model=model, trainer=trainer)
+
+
+def prior_key(prior_cfg, scene) -> str:
+    payload = {
+        "scene": scene_fingerprint(scene),
+        "views": prior_cfg.views,
+        "preset": prior_cfg.preset,
+        "seed": prior_cfg.seed,
+        "model": to_dict(prior_cfg.model),
+        "datamanager": to_dict(prior_cfg.datamanager),
+        "trainer": to_dict(prior_cfg.trainer),
+    }
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def run_prior(config, scene, device) -> PriorResult:
+    """Train (or reuse) the NeAS-1M prior of a run."""
+    from .figures import plot_loss_curves
+    from .train_stage import train_stage
+
+    pcfg = prior_config(config)
+    key = prior_key(pcfg, scene)
+    folder = Path(config.output_dir) / safe_name(scene.name) / PRIOR_FOLDER / key
+    vol_path = folder / "volume.npy"
+    if config.reuse_prior and (folder / "metrics.json").is_file() and vol_path.is_file():
+        try:
+            volume = np.load(vol_path, allow_pickle=False)
+            if tuple(volume.shape) == tuple(scene.geometry.n_voxel):
+                say(f"prior: reusing the NeAS-1M prior already trained for this scene, views, preset and seed: {folder}")
+                return PriorResult(volume, folder, 0.0, True)
+        except (OSError, ValueError):
+            pass
+    if not config.reuse_prior and folder.exists():
+        import shutil
+
+        shutil.rmtree(folder / "checkpoints", ignore_errors=True)
+        for name in ("metrics.json", "volume.npy"):
+            (folder / name).unlink(missing_ok=True)
+    for sub in ("checkpoints", "figures"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    write_json(folder / "config.json", to_dict(pcfg))
+    say(f"prior: training the NeAS-1M prior for the GMM bounds in {folder}")
+    trainer = train_stage(pcfg, scene, folder, epochs=pcfg.trainer.epochs, device=device, bounds=None, label="prior")
+    volume = sample_volume(trainer.model, scene.geometry, device=device)
+    np.save(vol_path, volume.astype(np.float32))
+    plot_loss_curves(trainer.loss_history(), folder / "figures" / "loss_curves.png", title="NeAS-1M prior")
+    metrics = {"method": PRIOR_METHOD, "role": "prior for automatic bounds", "steps": trainer.step,
+               "wall_time_s": trainer.wall_time_s, "parameters": trainer.model.num_parameters(), "preset": pcfg.preset,
+               "scene_source": scene.source, "key": key}
+    if scene.image is not None:
+        from ..evaluation.metrics import volume_metrics
+
+        metrics.update(volume_metrics(volume, np.asarray(scene.image, dtype=np.float32), ssim=False))
+    write_json(folder / "metrics.json", metrics)
+    return PriorResult(volume, folder, trainer.wall_time_s, False)
+
+
+def _line_integral_check(gmm, scene, what: str) -> float:
+    """The largest measured line integral needs at least ``p_max / (longest chord)`` 1/m
+    somewhere; warn (in ``gmm.warnings_``) when the upper bound cannot reach it. Returns that floor."""
+    hx, hy, hz = scene.geometry.volume_half_size
+    chord_m = 2.0 * float(np.sqrt(hx * hx + hy * hy + hz * hz)) / float(scene.geometry.scale)
+    mu_needed = float(np.max(np.asarray(scene.train.projections))) / chord_m
+    if float(gmm.boundaries_[-1]) < mu_needed:
+        gmm.warnings_.append(
+            f"the upper bound b_K = {float(gmm.boundaries_[-1]):.4g} 1/m cannot explain the largest measured line integral "
+            f"(it needs at least {mu_needed:.4g} 1/m along the longest chord): the {what} volume looks too weak; "
+            + ("train the prior longer (--trainer.prior-epochs) or give --bounds" if what == "NeAS-1M prior"
+               else "give --bounds or use --bounds-volume prior"))
+    return mu_needed
+
+
+def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.ndarray] = None) -> BoundsResult:
+    """Bounds for a surface method (module docstring). ``volume``: the classical bounds volume
+    when ``config.bounds_volume`` is a classical method (the caller computes it once)."""
+    from ..bounds import GMMBounds, load_bounds
+
+    K = config.num_materials
+    if config.bounds is not None:
+        b = load_bounds(config.bounds)
+        if K is not None and b.K != K:
+            raise ConfigError(f"--bounds {config.bounds} has {b.K} materials but the run asks for K = {K}; "
+                              f"drop --num-materials or use --num-materials {b.K}")
+        say(f"bounds: from {config.bounds} (K = {b.K})")
+        return BoundsResult(list(b.alphas), list(b.betas), b.K, f"file {config.bounds}")
+    m = config.model
+    if m.alphas is not None and m.betas is not None:
+        say(f"bounds: given on the command line (K = {len(m.alphas)})")
+        return BoundsResult(list(m.alphas), list(m.betas), len(m.alphas), "given (model.alphas/betas)")
+    if config.bounds_source == "wide":
+        from ..fields.attenuation import default_bounds
+
+        a, b = default_bounds(int(m.num_materials))
+        say("bounds: NeAS wide defaults")
+        return BoundsResult(a, b, int(m.num_materials), "wide (NeAS defaults)")
+    # automatic: GMM (SPEC §4) on the prior model's volume (the paper) or on a classical reconstruction
+    prior: Optional[PriorResult] = None
+    if config.bounds_volume == "prior":
+        prior = run_prior(config, scene, device)
+        volume, what = prior.volume, "NeAS-1M prior"
+    else:
+        if volume is None:
+            raise ConfigError(f"bounds volume {config.bounds_volume!r} was not computed; this is a bug in the pipeline")
+        what = config.bounds_volume.upper()
+    t0 = time.perf_counter()
+    gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method).fit(volume)
+    fit = gmm.to_dict()
+    fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
+    chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else "(BIC: " + ", ".join(f"K={k}: {v:.4g}" for k, v in sorted(gmm.bic_.items())) + ")")
+    gmm.plot(Path(run_dir) / "figures" / "gmm_bounds.png", title=f"{scene.name}: GMM attenuation bounds ({config.bounds_method}), K = {gmm.n_components_}")
+    mu_needed = _line_integral_check(gmm, scene, what)
+    for w in gmm.warnings_:
+        say(f"[yellow]bounds warning:[/] {w}")
+    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} {what} voxel values, {chosen}; "
+        f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
+    details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else "bic",
+               "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,
+               "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
+    return BoundsResult([float(v) for v in gmm.alphas_], [float(v) for v in gmm.betas_], int(gmm.n_components_),
+                        f"gmm ({config.bounds_method}) on the {what}", 0.0 if prior is None else prior.seconds, details)
