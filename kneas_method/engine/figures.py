@@ -16,6 +16,14 @@ def _plt():
     return plt
 
 
+def save_figure(fig, path: str | Path, dpi: int = 100) -> Path:
+    """Lay out, write (PNG) and close a matplotlib figure; returns the path."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    _plt().close(fig)
+    return Path(path)
+
+
 def _np(x) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
@@ -37,10 +45,7 @@ def plot_loss_curves(history: dict[str, list[tuple[int, float]]], path: str | Pa
     ax.set_title(title)
     if ax.lines:
         ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_projection_comparison(pred, gt, path: str | Path, title: str = "") -> Path:
@@ -65,10 +70,7 @@ def plot_projection_comparison(pred, gt, path: str | Path, title: str = "") -> P
     for ax in axes:
         ax.axis("off")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=110)
 
 
 def middle_slices(vol: np.ndarray):
@@ -103,10 +105,7 @@ def plot_slice_comparison(pred, gt, path: str | Path, title: str = "") -> Path:
             ax.set_title(f"{name}, {axis} = middle")
             ax.axis("off")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=100)
 
 
 def plot_validation(points, path: str | Path, title: str = "") -> Path:
@@ -118,10 +117,7 @@ def plot_validation(points, path: str | Path, title: str = "") -> Path:
     ax.set_xlabel("step")
     ax.set_ylabel("validation PSNR2D [dB]")
     ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=100)
 
 
 def run_figures(run_dir: str | Path, scene, projections, volume, title: str, trainer=None) -> None:

@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..engine.figures import _plt, middle_slices, plot_projection_comparison, plot_slice_comparison
+from ..engine.figures import _plt, middle_slices, plot_projection_comparison, plot_slice_comparison, save_figure
 
 
 def plot_weight_maps(weights: np.ndarray, path, title: str = "") -> Path:
@@ -54,10 +54,7 @@ def plot_label_maps(pred: np.ndarray, gt: Optional[np.ndarray], path, title: str
             ax.set_title(f"{name}, {axis} = middle")
             ax.axis("off")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def pick_views(n_total: int, n: Optional[int]) -> np.ndarray:
