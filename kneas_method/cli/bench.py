@@ -116,11 +116,10 @@ LAYOUT = {Table1: "table1", Views: "views", Ablation: "ablation", Grid: "grid"}
 
 
 def parse_args(argv: Sequence[str]) -> _Common:
-    import tyro
+    from .common import tyro_cli
 
     descriptions = {k: (type(v).__doc__ or "").strip() for k, v in SUBCOMMANDS.items()}
-    sub = tyro.extras.subcommand_type_from_defaults(SUBCOMMANDS, descriptions)
-    return tyro.cli(sub, args=list(argv), prog="kneas-bench",
+    return tyro_cli(SUBCOMMANDS, descriptions, list(argv), prog="kneas-bench", what="table",
                     description="Run the paper's experiment grids as kneas-train runs and write its tables.")
 
 

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, KneasError
-from .common import console, run_cli
+from .common import ArgumentParser, console, run_cli
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="kneas-data", description="Simulate, inspect and list cone-beam CT scenes (NAF pickle format).")
+    p = ArgumentParser(prog="kneas-data", description="Simulate, inspect and list cone-beam CT scenes (NAF pickle format).")
     sub = p.add_subparsers(dest="command", metavar="{simulate,inspect,scenes}")
     sub.required = True
 
@@ -217,9 +217,8 @@ def _scenes(args) -> int:
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (``kneas-data``)."""
-    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
-
     def body():
+        args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
         if args.command == "simulate":
             return _simulate(args)
         if args.command == "inspect":

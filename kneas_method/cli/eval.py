@@ -23,12 +23,12 @@ import time
 from pathlib import Path
 
 from ..errors import KneasError
-from .common import run_cli
+from .common import ArgumentParser, run_cli
 from .export import _say, output_folder
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="kneas-eval", description="Re-evaluate a trained kneas run on its held-out views (SPEC §5 metrics).")
+    p = ArgumentParser(prog="kneas-eval", description="Re-evaluate a trained kneas run on its held-out views (SPEC §5 metrics).")
     p.add_argument("run", metavar="RUN_DIR", nargs="?", default=None, help="run folder (or a checkpoint file of it)")
     p.add_argument("--checkpoint", metavar="FILE", default=None, help="evaluate this checkpoint (its run's config.json is next to it or one folder up)")
     p.add_argument("--scene", default=None, help="evaluate on this scene instead (built-in name or NAF pickle with the same volume box)")

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..errors import KneasError
-from .common import console, run_cli
+from .common import ArgumentParser, console, run_cli
 
 
 def _say(text: str) -> None:
@@ -38,7 +38,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="kneas-export", description="Export meshes, volumes and figures of a trained kneas run.")
+    p = ArgumentParser(prog="kneas-export", description="Export meshes, volumes and figures of a trained kneas run.")
     sub = p.add_subparsers(dest="command", metavar="{mesh,volume,figures}")
     sub.required = True
 

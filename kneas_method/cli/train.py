@@ -27,7 +27,7 @@ from ..engine.loading import read_config_file, read_run_config, resume_config
 from ..engine.pipeline import train
 from ..errors import ConfigError
 from ..methods import TrainConfig
-from .common import run_cli
+from .common import run_cli, tyro_cli
 
 
 def _pop_option(argv: list[str], name: str, example: str) -> tuple[Optional[str], list[str]]:
@@ -55,8 +55,6 @@ def parse_args(argv: Sequence[str]):
     ``--config FILE`` starts from a saved config; ``--resume RUN_DIR`` from the run's own
     ``config.json``, and only settings that do not change what is trained may be given
     with it (``loading.resume_config`` refuses the others in one line)."""
-    import tyro
-
     argv = list(argv)
     resume, argv = _pop_option(argv, "--resume", "outputs/foot/k-neas/<timestamp>")
     config_file, argv = _pop_option(argv, "--config", "path/to/config.json")
@@ -80,8 +78,8 @@ def parse_args(argv: Sequence[str]):
             argv.insert(0, start.method)
         elif resume is not None and argv[0] in defaults and argv[0] != start.method:
             raise ConfigError(f"--resume {resume} is a {start.method} run; drop the method name {argv[0]!r}")
-    sub = tyro.extras.subcommand_type_from_defaults(defaults, descriptions)
-    config = tyro.cli(sub, args=argv, prog="kneas-train", description="Train a kneas method (subcommand = registered method).")
+    config = tyro_cli(defaults, descriptions, argv, prog="kneas-train", what="method",
+                      description="Train a kneas method (subcommand = registered method).")
     if resume is not None:
         config = resume_config(resume, config)
     return config

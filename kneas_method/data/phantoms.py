@@ -688,5 +688,9 @@ def get_phantom(name: str) -> Phantom:
     """The built-in phantom ``name`` (one of :data:`PHANTOM_NAMES`)."""
     key = str(name).strip().lower()
     if key not in _BUILDERS:
-        raise SceneError(f"unknown built-in phantom {name!r}; choose one of: {', '.join(PHANTOM_NAMES)}")
+        import difflib
+
+        close = difflib.get_close_matches(key, PHANTOM_NAMES, n=1, cutoff=0.6)
+        raise SceneError(f"unknown built-in phantom {name!r}" + (f"; did you mean {close[0]}?" if close else "")
+                         + f" (choose one of: {', '.join(PHANTOM_NAMES)})")
     return _BUILDERS[key]()

@@ -109,7 +109,11 @@ def resolve_scene(
         return builtin_scene(spec, cache_dir=cache_dir, progress=progress)
     if path.is_dir():
         raise SceneError(f"--scene {spec} is a directory; give a NAF .pickle file or a built-in scene ({', '.join(names)})")
+    import difflib
+
+    close = difflib.get_close_matches(spec, names, n=1, cutoff=0.6)
     raise SceneError(
-        f"--scene {spec!r} is neither an existing file nor a built-in scene; "
-        f"use one of {', '.join(names)} or the path of an existing NAF .pickle file"
+        f"--scene {spec!r} is neither an existing file nor a built-in scene"
+        + (f"; did you mean {close[0]}?" if close else "")
+        + f" (built-in: {', '.join(names)}; or the path of an existing NAF .pickle file)"
     )

@@ -1,0 +1,39 @@
+"""Every command line, every kind of mistake: one line ``error: ...`` naming the closest valid
+choice, exit code 2, no traceback."""
+
+import importlib
+
+import pytest
+
+CASES = [
+    # (module, argv, words the one line must hold)
+    ("train", ["k-nesa"], ["unknown method 'k-nesa'", "did you mean k-neas"]),
+    ("train", ["k-neas", "--trainer.epoch", "3"], ["unknown option --trainer.epoch", "did you mean --trainer.epochs"]),
+    ("train", ["k-neas", "--preset", "fast", "--dry-run"], ["--preset 'fast' is not one of auto, paper, cpu, tiny"]),
+    ("train", ["k-neas", "--seed", "abc", "--dry-run"], ["--seed", "'abc'"]),
+    ("train", ["k-neas", "--scene", "fooot", "--preset", "tiny", "--output-dir", "{tmp}"], ["'fooot'", "did you mean foot"]),
+    ("train", ["--resume", "{tmp}/nowhere"], ["no config.json"]),
+    ("eval", ["{tmp}/nowhere"], ["does not exist"]),
+    ("eval", ["--scnee", "foot"], ["unrecognized arguments: --scnee", "did you mean --scene"]),
+    ("export", ["mesk", "run"], ["invalid choice: 'mesk'", "did you mean mesh"]),
+    ("export", ["mesh", "run", "--resolutoin", "3"], ["--resolutoin", "did you mean --resolution"]),
+    ("data", ["simulte"], ["invalid choice: 'simulte'", "did you mean simulate"]),
+    ("data", ["simulate", "--phantom", "fot", "-o", "{tmp}/x.pickle"], ["unknown built-in phantom 'fot'", "did you mean foot"]),
+    ("data", ["inspect", "{tmp}/missing.pickle"], ["missing.pickle"]),
+    ("bench", ["tabel1"], ["unknown table 'tabel1'", "did you mean table1"]),
+    ("bench", ["table1", "--sedes", "3"], ["unknown option --sedes", "did you mean --seeds"]),
+    ("bench", ["grid", "--methods", "k-nes", "--dry-run"], ["k-nes"]),
+]
+
+
+@pytest.mark.parametrize("module,argv,words", CASES, ids=[" ".join([c[0], *c[1]]) for c in CASES])
+def test_mistakes_are_one_line(module, argv, words, tmp_path, capsys):
+    cli = importlib.import_module(f"kneas_method.cli.{module}")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2, err
+    assert err.startswith("error:") and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in err, (word, err)
