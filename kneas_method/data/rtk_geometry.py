@@ -610,3 +610,7 @@ def world_array_to_volume(array: np.ndarray, grid: dict) -> np.ndarray:
             out = np.flip(out, axis=w)
     return np.ascontiguousarray(np.transpose(out, np.argsort(grid["order"])))
 
+
+def itk_array_of_world(array_w: np.ndarray) -> np.ndarray:
+    """``[w0, w1, w2]`` (world axis order) -> ITK's numpy order ``[w2, w1, w0]``."""
+    return np.ascontiguousarray(np.transpose(np.asarray(array_w), (2, 1, 0)))
