@@ -128,6 +128,28 @@ def test_isosurface_of_exact_sphere_in_mm(files):
     assert extractor
 
 
+def test_mesh_of_an_imported_scene_lies_in_the_scanner_world(files, tmp_path):
+    """An imported scan's meshes are written in its scanner world (LPS mm), like its .mha volumes:
+    the same surface, moved by the scene's kneas -> world map."""
+    from kneas_method.data.naf import load_naf, save_naf
+    from kneas_method.data.rtk_geometry import WORLD_AFFINE_META
+
+    world = np.array([[0.0, 1, 0, 5], [0, 0, 1, -7], [1, 0, 0, 11], [0, 0, 0, 1]])  # a cyclic axis permutation + shift
+    scene = load_naf(files["scene"])
+    scene.meta[WORLD_AFFINE_META] = world.tolist()
+    scanned = tmp_path / "scanned.pickle"
+    save_naf(scene, scanned)
+    run = write_run(tmp_path / "r", "k-neas", scanned, num_materials=2)
+    assert _cli(["mesh", str(files["kneas"]), "-o", str(tmp_path / "plain"), "--resolution", "24"]) == 0
+    assert _cli(["mesh", str(run), "-o", str(tmp_path / "world"), "--resolution", "24"]) == 0
+    plain = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "plain" / "material-1.ply")).vertices)
+    moved = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "world" / "material-1.ply")).vertices)
+    assert len(plain) == len(moved) > 0
+    np.testing.assert_allclose(moved, plain @ world[:3, :3].T + world[:3, 3], atol=1e-3)
+    info = json.loads((tmp_path / "world" / "meshes.json").read_text())
+    assert any("scanner's world" in n for n in info["notes"])
+
+
 @pytest.mark.parametrize("fmt", ["obj", "stl", "glb"])
 def test_mesh_formats(files, tmp_path, fmt):
     out = tmp_path / fmt

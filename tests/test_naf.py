@@ -130,7 +130,9 @@ BAD = [
     ("nan projection", lambda d: d["val"]["projections"].__setitem__((0, 0, 0), np.nan), r"val\.projections contains 1 NaN/inf"),
     ("inf image", lambda d: d["image"].__setitem__((0, 0, 0), np.inf), "image contains NaN or inf"),
     ("nan angle", lambda d: d["train"]["angles"].__setitem__(1, np.nan), r"train\.angles contains NaN"),
-    ("negative projection", lambda d: d["train"]["projections"].__setitem__((1, 2, 3), -0.5), r"train\.projections has negative values"),
+    ("log-intensities", lambda d: d["train"].update(projections=-d["train"]["projections"]), r"train\.projections have median -0\.\d+, far below 0"),
+    ("wildly negative", lambda d: d["val"]["projections"].__setitem__((0, slice(0, 2)), -3.0), r"val\.projections are wildly negative"),
+    ("all-zero projections", lambda d: d["train"].update(projections=np.zeros((3, 10, 12), np.float32)), r"train\.projections are all zero"),
     ("image shape", lambda d: d.update(image=np.zeros((8, 9, 8), np.float32)), r"image has shape \(8, 9, 8\) but nVoxel is \(8, 9, 7\)"),
     ("unknown mode", lambda d: d.update(mode="fan"), "mode is 'fan'; it must be 'cone' or 'parallel'"),
     ("zero DSO", lambda d: d.update(DSO=0.0), "DSO is 0.0; it must be one finite positive number"),
@@ -143,7 +145,7 @@ BAD = [
     ("nan offset", lambda d: d.update(offOrigin=np.array([np.nan, 0, 0])), "offOrigin"),
     ("train not dict", lambda d: d.update(train=[1, 2]), "train is a list; it must be a dict"),
     ("string projections", lambda d: d["train"].update(projections=np.array(["a"])), r"train\.projections has dtype"),
-    ("empty views", lambda d: d.update(val={"angles": np.zeros(0), "projections": np.zeros((0, 10, 12), np.float32)}), "val has no views"),
+    ("empty train", lambda d: d.update(train={"angles": np.zeros(0), "projections": np.zeros((0, 10, 12), np.float32)}), "train has no views"),
 ]
 
 
@@ -153,6 +155,33 @@ def test_validation_errors_name_the_key(tmp_path, case, mutate, message):
     with pytest.raises(SceneError, match=message) as info:
         load_naf(path)
     assert "\n" not in str(info.value)
+
+
+def test_scene_without_ground_truth_or_held_out_views(tmp_path):
+    """Measured scans: no image, val with 0 views (or no val at all); they load, save and load back."""
+    d = naf_dict(image=False)
+    d["val"] = {"angles": np.zeros(0), "projections": np.zeros((0, 10, 12), np.float32)}
+    scene = load_naf(write(tmp_path / "s.pickle", d))
+    assert scene.image is None and len(scene.val) == 0 and scene.val.projections.shape == (0, 10, 12)
+    assert len(scene.subsample_views(2).train) == 2 and len(scene.subsample_views(2).val) == 0
+    back = load_naf(save_naf(scene, tmp_path / "b.pickle"))
+    assert_same_scene(scene, back)
+    assert back.meta["numVal"] == 0
+    d.pop("val")
+    d["val"] = {"angles": [], "projections": []}  # plain empty lists
+    assert len(load_naf(write(tmp_path / "l.pickle", d)).val) == 0
+    d.pop("val")
+    assert len(load_naf(write(tmp_path / "n.pickle", d)).val) == 0
+
+
+def test_small_negative_line_integrals_are_kept(tmp_path):
+    """Noise in air gives slightly negative line integrals (as TIGRE's noise does); they load unchanged."""
+    d = naf_dict()
+    noise = np.random.default_rng(1).normal(0, 0.01, d["train"]["projections"].shape).astype(np.float32)
+    d["train"]["projections"][:, :4] = noise[:, :4]  # a band of air with noise
+    scene = load_naf(write(tmp_path / "s.pickle", d))
+    assert scene.train.projections.min() < 0
+    np.testing.assert_array_equal(scene.train.projections, d["train"]["projections"])
 
 
 def test_non_dict_and_garbage_files(tmp_path):

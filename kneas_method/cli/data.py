@@ -1,8 +1,12 @@
-"""`kneas-data`: simulate, inspect and list CT scenes.
+"""`kneas-data`: simulate, import, inspect, export and list CT scenes.
 
     kneas-data simulate --phantom foot -o foot_50.pickle
     kneas-data simulate --volume ct.nii.gz --convert -o my_50.pickle
+    kneas-data simulate --volume dicom_series_folder/ --convert -o my_50.pickle
+    kneas-data import projections.mha --geometry geometry.xml -o scan.pickle
+    kneas-data import 'raw/*.tif' --geometry geometry.xml --flat flat.tif --dark dark.tif --pixel-mm 0.4 --centre-detector -o scan.pickle
     kneas-data inspect foot_50.pickle --png foot.png
+    kneas-data export scan.pickle --rtk rtk_dir/
     kneas-data scenes
 """
 
@@ -20,14 +24,14 @@ from .common import ArgumentParser, console, run_cli
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="kneas-data", description="Simulate, inspect and list cone-beam CT scenes (NAF pickle format).")
-    sub = p.add_subparsers(dest="command", metavar="{simulate,inspect,scenes}")
+    p = ArgumentParser(prog="kneas-data", description="Simulate, import, inspect, export and list cone-beam CT scenes (NAF pickle format).")
+    sub = p.add_subparsers(dest="command", metavar="{simulate,import,inspect,export,scenes}")
     sub.required = True
 
     s = sub.add_parser("simulate", help="simulate a NAF scene from a built-in phantom or a CT volume")
     src = s.add_mutually_exclusive_group(required=True)
     src.add_argument("--phantom", metavar="NAME", help="built-in phantom (see `kneas-data scenes`)")
-    src.add_argument("--volume", metavar="FILE", help="CT volume: .npy, .nii, .nii.gz or .mat")
+    src.add_argument("--volume", metavar="FILE", help="CT volume: .npy, .nii, .nii.gz, .mat, or a DICOM series folder")
     s.add_argument("-o", "--output", required=True, metavar="OUT.pickle", help="scene pickle to write")
     g = s.add_argument_group("volume")
     g.add_argument("--n-voxel", type=int, default=128, help="phantom volume grid size per axis (default 128)")
@@ -56,9 +60,30 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0)
     s.add_argument("--device", default=None, help="torch device for the voxel projector (default cpu)")
 
+    m = sub.add_parser("import", help="import your own scan: projection images + RTK geometry XML -> scene pickle")
+    m.add_argument("projections", nargs="+", metavar="PROJECTIONS",
+                   help="projection images (any format ITK reads: .mha, .mhd, .nrrd, .tif, ...): one stack, several files, a folder or a quoted glob")
+    m.add_argument("--geometry", required=True, metavar="GEOMETRY.xml", help="RTK geometry XML (rtksimulatedgeometry, rtkvarianobigeometry, ... write it)")
+    m.add_argument("-o", "--output", required=True, metavar="SCENE.pickle", help="scene pickle to write")
+    m.add_argument("--kind", choices=("auto", "counts", "normalized", "line-integrals"), default="auto",
+                   help="what the pixel values are (default auto: detected; counts when --flat/--dark/--i0 is given)")
+    m.add_argument("--flat", metavar="FLAT", default=None, help="flat-field image(s) without the object (raw counts); frames are averaged")
+    m.add_argument("--dark", metavar="DARK", default=None, help="dark-field image(s) (raw counts); frames are averaged")
+    m.add_argument("--i0", type=float, default=None, metavar="VALUE", help="unattenuated intensity I0 instead of a flat field (raw counts)")
+    m.add_argument("--volume-size", type=int, default=None, metavar="N", help="voxels along the grid's largest side (default: fit the field of view, at most 256)")
+    m.add_argument("--voxel-mm", type=float, default=None, metavar="MM", help="voxel size in mm (default: a detector pixel at the isocentre)")
+    m.add_argument("--pixel-mm", type=float, nargs="+", default=None, metavar="MM", help="detector pixel size (one, or u and v) when the files carry none (TIFF)")
+    m.add_argument("--centre-detector", action="store_true", help="put the detector centre at u = v = 0 (files without an origin; offsets then come from the XML)")
+    m.add_argument("--name", default=None, help="scene name (default: the geometry file's stem)")
+
     i = sub.add_parser("inspect", help="describe a scene pickle and draw a projection and slices")
     i.add_argument("scene", metavar="SCENE.pickle")
     i.add_argument("--png", default=None, metavar="OUT.png", help="write a figure of one projection and the middle slices")
+
+    e = sub.add_parser("export", help="write a scene for RTK: projections .mha + RTK geometry XML")
+    e.add_argument("scene", metavar="SCENE", help="scene pickle or built-in scene name")
+    e.add_argument("--rtk", required=True, metavar="DIR", help="folder for projections.mha, geometry.xml (and image.mha, rtk.json)")
+    e.add_argument("--views", choices=("train", "val", "all"), default="train", help="which views to write (default train)")
 
     sub.add_parser("scenes", help="list the built-in scenes, their materials and attenuation levels")
     return p
@@ -128,6 +153,59 @@ def _simulate(args) -> int:
     return 0
 
 
+def _import(args) -> int:
+    from ..data.naf import save_naf
+    from ..data.scanner_import import import_scan
+
+    out = Path(args.output)
+    if out.is_dir():
+        raise ConfigError(f"-o {out} is a directory; give a file name such as {out / 'scan.pickle'}")
+    t0 = time.perf_counter()
+    with console.status("reading projections and geometry"):
+        scene = import_scan(
+            args.projections, args.geometry, flat=args.flat, dark=args.dark, i0=args.i0, kind=args.kind,
+            volume_size=args.volume_size, voxel_mm=args.voxel_mm, pixel_mm=args.pixel_mm,
+            centre_detector=args.centre_detector, name=args.name,
+        )
+        save_naf(scene, out)
+    g = scene.geometry.to_mm()
+    imp = scene.meta["import"]
+    conv = imp["conversion"]
+    say = lambda msg: console.print(msg, soft_wrap=True, markup=False)  # noqa: E731
+    say(f"wrote {out}  ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t0:.1f} s")
+    a = np.degrees(scene.train.angles)
+    say(f"  {len(scene.train)} projections from {imp['projections']['count']} file(s); {g['mode']} beam, DSO {g['DSO']:.6g} mm, "
+        f"DSD {g['DSD']:.6g} mm; angles {a.min():.2f}..{a.max():.2f} deg ({scene.meta['totalAngle']:.1f} deg arc)")
+    say(f"  detector {tuple(scene.geometry.n_detector)} px x {_fmt(g['dDetector'])} mm, offset {_fmt(g['offDetector'])} mm (kneas u, v)")
+    i0 = f", I0 {conv['i0']:.6g}" + (" (estimated from the air border)" if conv.get("i0_estimated_from") else "") if "i0" in conv else ""
+    say(f"  values: {conv['kind']}{' (detected)' if conv['detected'] else ''}: {conv['formula']}{i0}")
+    p = scene.train.projections
+    neg = 100 * float(np.mean(p < 0))
+    say(f"  line integrals {_range(p)}" + (f", {neg:.1f} % below 0 (noise in air, kept)" if neg else ""))
+    say(f"  grid {tuple(scene.geometry.n_voxel)} x {_fmt(g['dVoxel'])} mm, offset {_fmt(g['offOrigin'])} mm "
+        f"({imp['grid']['chosen']}: radius {imp['grid']['fov_radius_mm']:.4g} mm, height {imp['grid']['fov_height_mm']:.4g} mm)")
+    say(f"  frame: {imp['frame']}")
+    say("  no ground truth and no held-out views: all projections are for training")
+    for note in imp["notes"]:
+        say(f"note: {note}")
+    return 0
+
+
+def _export(args) -> int:
+    from ..data.rtk_export import export_rtk
+    from ..data.scenes import resolve_scene
+
+    scene = resolve_scene(args.scene)
+    info = export_rtk(scene, args.rtk, views=args.views)
+    say = lambda msg: console.print(msg, soft_wrap=True, markup=False)  # noqa: E731
+    say(f"wrote {info['n_projections']} {args.views} projections of {scene.name} for RTK to {args.rtk}")
+    for key, path in info["files"].items():
+        say(f"  {key}: {path}")
+    say(f"  reconstruct with: {info['rtkfdk']}")
+    say(f"  note: {info['units']}")
+    return 0
+
+
 def _fmt(values) -> str:
     arr = np.atleast_1d(np.asarray(values, dtype=float))
     return "(" + ", ".join(f"{v:.4g}" for v in arr) + ")"
@@ -149,20 +227,34 @@ def _inspect(args) -> int:
     c.print(f"  volume {tuple(scene.geometry.n_voxel)} x {_fmt(g['dVoxel'])} mm = {_fmt(g['sVoxel'])} mm, offset {_fmt(g['offOrigin'])} mm")
     near, far = scene.geometry.near_far
     c.print(f"  near/far {near * scene.geometry.mm_per_unit:.5g} / {far * scene.geometry.mm_per_unit:.5g} mm along the central ray")
+    from ..datamanagers.ct import noise_air_threshold
+
+    threshold, sigma = noise_air_threshold(scene.train.projections)
     for label, views in (("train", scene.train), ("val", scene.val)):
         p = views.projections
-        obj = float(np.mean(p > 0)) * 100
+        if len(views) == 0:
+            c.print(f"  {label}: 0 views (no held-out views; evaluation holds out training views)")
+            continue
+        obj = float(np.mean(p > threshold)) * 100
+        neg = float(np.mean(p < 0)) * 100
         c.print(
             f"  {label}: {len(views)} views {tuple(p.shape)}, angles {np.degrees(views.angles.min()):.2f}..{np.degrees(views.angles.max()):.2f} deg, "
-            f"projections {_range(p)} ({obj:.1f} % object pixels)"
+            f"projections {_range(p)} ({obj:.1f} % object pixels" + (f", {neg:.1f} % below 0" if neg else "") + ")"
         )
+    if threshold > 0:
+        c.print(f"  noise: sigma {sigma:.3g} in air (from the negative values); air = p <= {threshold:.3g}")
     if scene.image is not None:
         c.print(f"  image {tuple(scene.image.shape)} {scene.image.dtype}, values {_range(scene.image)}")
     else:
         c.print("  image: none (no ground truth)")
     if scene.materials:
         c.print(f"  materials: {', '.join(f'{i + 1}={m}' for i, m in enumerate(scene.materials))}")
-    skip = {"geometry_mm", "simulation"}
+    if isinstance(scene.meta.get("import"), dict):
+        imp = scene.meta["import"]
+        c.print(f"  imported from {imp.get('geometry')} ({imp.get('projections', {}).get('count', '?')} projection file(s)); "
+                f"{imp.get('conversion', {}).get('formula', '')}", markup=False)
+        c.print(f"  frame: {imp.get('frame', '')}", markup=False)
+    skip = {"geometry_mm", "simulation", "import", "world_affine_lps"}
     extras = {k: v for k, v in scene.meta.items() if k not in skip and (np.isscalar(v) or v is None)}
     if extras:
         c.print("  " + ", ".join(f"{k}={v}" for k, v in extras.items()))
@@ -223,6 +315,10 @@ def main(argv: list[str] | None = None) -> None:
             return _simulate(args)
         if args.command == "inspect":
             return _inspect(args)
+        if args.command == "import":
+            return _import(args)
+        if args.command == "export":
+            return _export(args)
         return _scenes(args)
 
     run_cli(body)

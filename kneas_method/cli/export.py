@@ -57,7 +57,8 @@ def _parser() -> argparse.ArgumentParser:
     _common(v)
     v.add_argument("--threshold", type=float, action="append", default=None, metavar="MU",
                    help="methods without an SDF: label = number of these attenuation levels (data units) exceeded")
-    v.add_argument("--no-nifti", action="store_true", help="write only .npy files")
+    v.add_argument("--no-nifti", action="store_true", help="write no NIfTI files")
+    v.add_argument("--no-mha", action="store_true", help="write no .mha files (written when ITK is installed: pip install 'kneas[scanner]')")
 
     f = sub.add_parser("figures", help="projection, slice, weight and label figures (PNG)")
     _common(f)
@@ -118,7 +119,8 @@ def _volume(args) -> int:
 
     run = _load(args)
     out = output_folder(run.run_dir, args.output, "export")
-    info = export_volume(run, out, thresholds=args.threshold, nifti=not args.no_nifti, chunk=args.chunk)
+    info = export_volume(run, out, thresholds=args.threshold, nifti=not args.no_nifti, chunk=args.chunk,
+                         mha=False if args.no_mha else None)
     for note in info["notes"]:
         _say(f"note: {note}")
     vx = ", ".join(f"{v:.4g}" for v in info["voxel_mm"])

@@ -8,6 +8,13 @@ and refuses every other global *before* anything is called.
 Units: the file holds lengths in mm and projections as line integrals with
 lengths in metres; :class:`~kneas_method.geometry.Geometry` converts to model
 units. ``scene.image`` stays in data units.
+
+Scenes without ground truth (measured scans, ``kneas-data import``) are valid:
+``image`` may be absent and ``val`` may hold 0 views (or be absent); ``train``
+needs at least one view. Noisy line integrals may dip below 0 (noise in air, as
+TIGRE's noise model and real detectors give): they are kept as they are;
+only values that are clearly not line integrals are refused
+(:func:`check_line_integrals`).
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from .scene import Scene, Views
 
 # Geometry keys (mm) that Geometry.from_mm takes.
 GEOMETRY_KEYS = ("mode", "DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "offOrigin", "offDetector")
-REQUIRED_KEYS = ("mode", "DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "train", "val")
+REQUIRED_KEYS = ("mode", "DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "train")
 # Keys handled explicitly (everything else goes to scene.meta).
 _STRUCTURAL_KEYS = set(GEOMETRY_KEYS) | {"train", "val", "image", "labels", "sVoxel", "sDetector"}
 # scene.meta key holding the file's exact geometry values, so save(load(f)) writes them back bit for bit.
@@ -183,7 +190,47 @@ def _numeric_array(value, key: str, label: str) -> np.ndarray:
     return arr
 
 
-def _views(d: dict, key: str, n_u: int, n_v: int, label: str) -> Views:
+# Line integrals of noisy data dip a little below 0 in air; these limits catch what is clearly not line integrals.
+NEGATIVE_MEDIAN_LIMIT = -0.1  # median below this: log-intensities (sign flipped) or a wrong I0
+NEGATIVE_PERCENTILE_LIMIT = -1.0  # 1st percentile below this: over 1 % of pixels brighter than e x I0
+
+
+def _strided_sample(arr: np.ndarray, n: int = 1_000_000) -> np.ndarray:
+    flat = np.asarray(arr).reshape(-1)
+    return flat if flat.size <= n else flat[:: int(math.ceil(flat.size / n))]
+
+
+def check_line_integrals(proj: np.ndarray, label: str, key: str) -> None:
+    """Refuse projection values that are clearly not line integrals ``∫ mu dl`` (one-line SceneError).
+
+    Small negative values (noise in air, as TIGRE's and real detectors' noise
+    gives) are accepted and kept. Refused: NaN/inf, all zero, a median below
+    :data:`NEGATIVE_MEDIAN_LIMIT` (log-intensities or intensities with the sign
+    flipped, a wrong I0) or a 1st percentile below :data:`NEGATIVE_PERCENTILE_LIMIT`.
+    """
+    proj = np.asarray(proj)
+    if proj.size == 0:
+        return
+    if not np.all(np.isfinite(proj)):
+        bad = int(np.count_nonzero(~np.isfinite(proj)))
+        raise _fail(label, f"{key} contains {bad} NaN/inf values; fix or drop those views")
+    if not np.any(proj):
+        raise _fail(label, f"{key} are all zero: there is nothing to reconstruct; check that the right data were written")
+    sample = _strided_sample(proj).astype(np.float64)
+    median = float(np.median(sample))
+    if median < NEGATIVE_MEDIAN_LIMIT:
+        raise _fail(label, f"{key} have median {median:.4g}, far below 0: they are not line integrals -ln(I/I0) "
+                           "(log-intensities ln(I/I0) have the opposite sign; a wrong I0 shifts them); negate or re-convert them "
+                           "(kneas-data import converts raw counts)")
+    low = float(np.percentile(sample, 1))
+    if low < NEGATIVE_PERCENTILE_LIMIT:
+        raise _fail(label, f"{key} are wildly negative (1st percentile {low:.4g}: over 1 % of pixels brighter than e x I0); "
+                           "check the flat field / I0 used to make them")
+
+
+def _views(d: dict, key: str, n_u: int, n_v: int, label: str, allow_empty: bool = False) -> Views:
+    if key not in d and allow_empty:
+        return Views(angles=np.zeros(0), projections=np.zeros((0, n_v, n_u), np.float32))
     part = d[key]
     if not isinstance(part, dict):
         raise _fail(label, f"{key} is a {type(part).__name__}; it must be a dict with 'angles' and 'projections'")
@@ -195,6 +242,8 @@ def _views(d: dict, key: str, n_u: int, n_v: int, label: str) -> Views:
     if proj.ndim == 2 and len(angles) == 1:
         proj = proj[None]
     n = len(angles)
+    if n == 0 and proj.size == 0:
+        proj = proj.reshape(0, n_v, n_u)
     if proj.ndim != 3 or proj.shape[1:] != (n_v, n_u):
         raise _fail(
             label,
@@ -203,20 +252,12 @@ def _views(d: dict, key: str, n_u: int, n_v: int, label: str) -> Views:
         )
     if proj.shape[0] != n:
         raise _fail(label, f"{key} has {n} angles but {proj.shape[0]} projections; they must match one to one")
-    if n == 0:
+    if n == 0 and not allow_empty:
         raise _fail(label, f"{key} has no views; it needs at least one angle and projection")
     if not np.all(np.isfinite(angles)):
         raise _fail(label, f"{key}.angles contains NaN or inf; every angle must be a finite number of radians")
     proj = proj.astype(np.float32, copy=False)
-    if not np.all(np.isfinite(proj)):
-        bad = int(np.count_nonzero(~np.isfinite(proj)))
-        raise _fail(label, f"{key}.projections contains {bad} NaN/inf values; fix or drop those views")
-    if np.any(proj < 0):
-        raise _fail(
-            label,
-            f"{key}.projections has negative values (min {float(proj.min()):.4g}); line integrals must be >= 0 "
-            "(clip them to 0 before saving)",
-        )
+    check_line_integrals(proj, label, f"{key}.projections")
     return Views(angles=angles, projections=np.ascontiguousarray(proj))
 
 
@@ -271,7 +312,7 @@ def scene_from_dict(d: Any, label: str, *, name: str = "scene", source: str = ""
     )
     n_u, n_v = int(n_det[0]), int(n_det[1])
     train = _views(d, "train", n_u, n_v, label)
-    val = _views(d, "val", n_u, n_v, label)
+    val = _views(d, "val", n_u, n_v, label, allow_empty=True)
 
     image = d.get("image")
     if image is not None:
@@ -316,18 +357,23 @@ def load_naf(path, *, name: str | None = None) -> Scene:
     return scene_from_dict(data, path.name, name=name or path.stem, source=f"file {path}")
 
 
-def scene_to_dict(scene: Scene) -> dict:
-    """The NAF dict for ``scene`` (inverse of :func:`scene_from_dict`)."""
+def scene_geometry_mm(scene: Scene) -> dict:
+    """The scene's geometry as NAF keys in mm: the file's exact values when they still
+    describe ``scene.geometry`` (a loaded scene), else :meth:`Geometry.to_mm`."""
     geometry_mm = scene.meta.get(GEOMETRY_MM_META)
     try:
         exact = isinstance(geometry_mm, dict) and Geometry.from_mm(**geometry_mm) == scene.geometry
     except Exception:  # malformed or stale meta: fall back to the geometry itself
         exact = False
     if exact:
-        geo = dict(geometry_mm)
-    else:
-        full = scene.geometry.to_mm()
-        geo = {k: full[k] for k in GEOMETRY_KEYS}
+        return dict(geometry_mm)
+    full = scene.geometry.to_mm()
+    return {k: full[k] for k in GEOMETRY_KEYS}
+
+
+def scene_to_dict(scene: Scene) -> dict:
+    """The NAF dict for ``scene`` (inverse of :func:`scene_from_dict`)."""
+    geo = scene_geometry_mm(scene)
     out: dict[str, Any] = dict(DEFAULT_META)
     out.update({k: v for k, v in scene.meta.items() if k != GEOMETRY_MM_META})
     out.update(geo)

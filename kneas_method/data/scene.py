@@ -37,8 +37,10 @@ class Scene:
     Attributes:
         name: short name (``foot``, or the pickle's stem).
         geometry: scanner/volume geometry in model units.
-        train, val: training and held-out views.
-        image: ground-truth attenuation [nx, ny, nz] in data units (NAF: [0, 1]), or None.
+        train, val: training and held-out views; ``val`` may hold 0 views (measured
+            scans from ``kneas-data import``: evaluation then holds out training views).
+        image: ground-truth attenuation [nx, ny, nz] in data units (NAF: [0, 1]), or None
+            (measured scans have no ground truth).
         labels: ground-truth material labels [nx, ny, nz] (0 = air), built-in scenes only.
         materials: names of the label values 1..M (built-in scenes only).
         membership: ``f(points_model [P, 3]) -> labels [P]`` exact material label at
@@ -60,7 +62,7 @@ class Scene:
 
     def subsample_views(self, n: int | None) -> "Scene":
         """Keep ``n`` training views spread uniformly over the training set (the
-        paper's 5/10/20/50-view protocol); held-out views are unchanged."""
+        paper's 5/10/20/50-view protocol); held-out views (possibly none) are unchanged."""
         total = len(self.train)
         if n is None or n == total:
             return self

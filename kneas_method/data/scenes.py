@@ -19,7 +19,7 @@ from typing import Callable, Optional
 from ..errors import SceneError
 from .naf import load_naf, save_naf
 from .scene import Scene
-from .simulate import SIMULATOR_VERSION, SimulationConfig, simulate_phantom
+from .simulate import NOISE_MODEL_VERSION, SIMULATOR_VERSION, SimulationConfig, simulate_phantom
 
 CACHE_KEY_META = "cache_key"
 
@@ -43,6 +43,8 @@ def cache_key(name: str, cfg: SimulationConfig) -> str:
 
     phantom = get_phantom(name)
     payload = {"name": name, "config": cfg.to_dict(), "phantom": phantom.describe(), "simulator": SIMULATOR_VERSION}
+    if cfg.noise:
+        payload["noise_model"] = NOISE_MODEL_VERSION
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

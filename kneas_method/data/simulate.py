@@ -21,6 +21,9 @@ from .scene import Scene, Views
 
 # Bumped whenever the simulator's output for a given config changes (scene caches key on it).
 SIMULATOR_VERSION = 1
+# Bumped when the noise model's output changes; only scenes simulated with noise key on it.
+# 2: negative line integrals in air are kept (as TIGRE's noise gives), no longer clipped at 0.
+NOISE_MODEL_VERSION = 2
 DETECTOR_MARGIN = 0.04  # fraction of the magnified volume extent added to the detector
 DEFAULT_N_DETECTOR = 128
 
@@ -170,18 +173,20 @@ def make_angles(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def add_noise(projections: np.ndarray, photons: float = 1e5, electronic_sigma: float = 10.0, rng=None) -> np.ndarray:
-    """NAF's detector noise on line integrals ``p`` [N, nV, nU].
+    """TIGRE/NAF detector noise on line integrals ``p`` [N, nV, nU].
 
     ``counts = Poisson(photons·exp(−p)) + Normal(0, electronic_sigma)``, then
-    ``p = −log(clip(counts, 1, ∞) / photons)`` clipped at 0. Returns float32.
+    ``p = −log(clip(counts, 1, ∞) / photons)``. As with TIGRE's noise model (and a
+    real detector), air pixels fluctuate around 0, so some line integrals are
+    slightly negative; they are kept (only counts below 1 are clipped, so that
+    the logarithm exists). Returns float32.
     """
     rng = rng if rng is not None else np.random.default_rng()
     p = np.asarray(projections, dtype=np.float64)
     counts = rng.poisson(photons * np.exp(-p)).astype(np.float64)
     if electronic_sigma > 0:
         counts += rng.normal(0.0, electronic_sigma, size=counts.shape)
-    noisy = -np.log(np.clip(counts, 1.0, None) / photons)
-    return np.clip(noisy, 0.0, None).astype(np.float32)
+    return (-np.log(np.clip(counts, 1.0, None) / photons)).astype(np.float32)
 
 
 def _meta(cfg: SimulationConfig, **extra) -> dict:
@@ -200,6 +205,8 @@ def _meta(cfg: SimulationConfig, **extra) -> dict:
         "randomAngle": bool(cfg.random_val_angles),
         "simulation": {"version": SIMULATOR_VERSION, **cfg.to_dict()},
     }
+    if cfg.noise:
+        meta["simulation"]["noise_model"] = NOISE_MODEL_VERSION
     meta.update(extra)
     return meta
 

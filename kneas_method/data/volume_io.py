@@ -1,4 +1,10 @@
-"""Read user CT volumes (.npy, NIfTI, MATLAB .mat) and convert them to attenuation.
+"""Read user CT volumes (.npy, NIfTI, MATLAB .mat, a DICOM series folder) and convert them to attenuation.
+
+A DICOM series (a folder of slices) is read through ITK (``pip install
+'kneas[scanner]'``), which applies each slice's rescale slope/intercept, so its
+values are HU: pass ``--convert`` with the default slope 1 and intercept 0. The
+array is taken in the image's index order (x = columns, y = rows, z = slices)
+with ITK's voxel spacing; without ITK, pydicom is used when it is installed.
 
 HU conversion follows NAF's data generator: ``HU = raw·slope + intercept``, then
 ``mu = mu_water·(1 + HU/1000)`` with ``mu_water = 0.2 /cm = 20 /m`` (negative values,
@@ -17,7 +23,7 @@ import numpy as np
 from ..errors import KneasError, SceneError
 
 MU_WATER_PER_M = 20.0  # 0.2 /cm
-SUPPORTED = (".npy", ".nii", ".nii.gz", ".mat")
+SUPPORTED = (".npy", ".nii", ".nii.gz", ".mat", "a DICOM series folder")
 
 
 def _suffix(path: Path) -> str:
@@ -69,6 +75,48 @@ def _read_nifti(path: Path):
     return arr, voxel
 
 
+def _read_dicom_series(path: Path):
+    """A DICOM series folder -> (array [nx, ny, nz] in HU, voxel mm)."""
+    try:
+        import itk  # noqa: F401
+    except ImportError:
+        return _read_dicom_pydicom(path)
+    from .itk_io import read_image
+
+    img = read_image(path, purpose="reading a DICOM series")
+    arr = np.asarray(img.array)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise SceneError(f"{path.name}: the DICOM series is {arr.ndim}-D; a CT volume must be 3-D")
+    voxel = tuple(float(v) for v in img.spacing[:3])
+    return np.transpose(arr, (2, 1, 0)), voxel
+
+
+def _read_dicom_pydicom(path: Path):
+    try:
+        import pydicom
+    except ImportError:
+        raise KneasError("reading a DICOM series needs ITK (or pydicom), which is not installed; install it with: "
+                         "pip install 'kneas[scanner]'") from None
+    slices = []
+    for f in sorted(p for p in path.iterdir() if p.is_file()):
+        try:
+            ds = pydicom.dcmread(str(f))
+            slices.append((float(ds.ImagePositionPatient[2]), ds))
+        except Exception:
+            continue
+    if not slices:
+        raise SceneError(f"{path} holds no readable DICOM slices; give a DICOM series folder")
+    slices.sort(key=lambda t: t[0])
+    arr = np.stack([ds.pixel_array.astype(np.float64) * float(getattr(ds, "RescaleSlope", 1.0))
+                    + float(getattr(ds, "RescaleIntercept", 0.0)) for _, ds in slices], 0)  # [z, y, x]
+    first = slices[0][1]
+    dy, dx = (float(v) for v in first.PixelSpacing)
+    dz = abs(slices[1][0] - slices[0][0]) if len(slices) > 1 else float(getattr(first, "SliceThickness", 1.0))
+    return np.transpose(arr, (2, 1, 0)), (dx, dy, dz)
+
+
 def _read_mat(path: Path, key: Optional[str]):
     import scipy.io
 
@@ -107,7 +155,7 @@ def load_volume(
     """Load a CT volume and turn it into attenuation.
 
     Args:
-        path: ``.npy``, ``.nii``, ``.nii.gz`` or ``.mat`` file.
+        path: ``.npy``, ``.nii``, ``.nii.gz`` or ``.mat`` file, or a DICOM series folder.
         convert: treat values as raw scanner values and convert via HU to attenuation [1/m].
         rescale_slope, rescale_intercept: ``HU = raw·slope + intercept`` (only with ``convert``).
         normalize: divide by the maximum so the volume spans [0, 1].
@@ -115,13 +163,18 @@ def load_volume(
 
     Returns:
         ``(volume, voxel_mm)``: float32 [nx, ny, nz] and the voxel size in mm from the
-        file header (NIfTI) or None when the format carries none.
+        file header (NIfTI, DICOM) or None when the format carries none.
     """
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        suffix = "dicom"
+    elif not path.is_file():
         raise SceneError(f"{path}: no such file; check the path to the volume")
-    suffix = _suffix(path)
-    if suffix == ".npy":
+    else:
+        suffix = _suffix(path)
+    if suffix == "dicom":
+        arr, voxel = _read_dicom_series(path)
+    elif suffix == ".npy":
         arr, voxel = _read_npy(path)
     elif suffix in (".nii", ".nii.gz"):
         arr, voxel = _read_nifti(path)

@@ -2,8 +2,17 @@
 
 One step = one training projection. Each epoch visits the training views in a
 fresh random permutation; for the current view it draws ``num_object`` object
-pixels (``p > 0``) and ``num_air`` air pixels (``p == 0``) without replacement
-(``samplers.pixels``) and builds their rays with ``geometry.rays``. All
+pixels and ``num_air`` air pixels without replacement (``samplers.pixels``) and
+builds their rays with ``geometry.rays``.
+
+Object vs air: SPEC §1 calls ``p > 0`` object and ``p == 0`` air, which holds for
+noise-free data. Measured (and TIGRE-noised) line integrals scatter around 0 in
+air, so the split is ``p > τ`` / ``p <= τ`` with ``τ`` estimated from the data
+(:func:`noise_air_threshold`: 3 noise sigmas, the sigma read off the negative
+values, which only noise produces). Noise-free data have no negative values and
+``τ = 0``: exactly SPEC §1. Negative values stay in the data: object rays lie
+above ``τ >= 0`` and the floater loss on air rays targets intensity 1 without
+reading ``p``, so no method here needs them clipped. All
 randomness comes from one seeded ``torch.Generator`` (CPU), and
 :meth:`CTDataManager.state_dict` / :meth:`load_state_dict` capture it, so a
 resumed run draws exactly the batches a straight run would.
@@ -11,6 +20,7 @@ resumed run draws exactly the batches a straight run would.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -20,6 +30,45 @@ import torch
 from ..config import InstantiateConfig
 from ..errors import CheckpointError
 from ..data.scene import Scene
+
+
+AIR_NOISE_SIGMAS = 3.0
+_ANNOUNCED: set[str] = set()
+
+
+def noise_air_threshold(projections, sigmas: float = AIR_NOISE_SIGMAS, max_samples: int = 2_000_000) -> tuple[float, float]:
+    """Noise-aware air threshold of line integrals.
+
+    Noise makes air pixels scatter symmetrically about 0 while attenuation only
+    adds, so the negative values are (half of) the noise in air. Their robust
+    scale ``sigma = median(|p|, p < 0) / 0.6745`` (the median of a half-normal)
+    ignores a few outliers; the threshold is ``sigmas * sigma``.
+
+    Args:
+        projections: [N, nV, nU] line integrals.
+        sigmas: how many noise sigmas above 0 still count as air.
+
+    Returns:
+        ``(threshold, sigma)``; ``(0.0, 0.0)`` when no value is negative (noise-free data).
+    """
+    flat = np.asarray(projections).reshape(-1)
+    if flat.size > max_samples:
+        flat = flat[:: int(math.ceil(flat.size / max_samples))]
+    neg = flat[flat < 0].astype(np.float64)
+    if neg.size == 0:
+        return 0.0, 0.0
+    sigma = float(np.median(-neg)) / 0.6745
+    return float(sigmas * sigma), sigma
+
+
+def _announce(msg: str) -> None:
+    """Print ``note: msg`` once per process (the prior and main stages build a datamanager each)."""
+    if msg in _ANNOUNCED:
+        return
+    _ANNOUNCED.add(msg)
+    from ..cli.common import console
+
+    console.print(f"note: {msg}", soft_wrap=True, markup=False)
 
 
 @dataclass
@@ -60,7 +109,19 @@ class CTDataManager:
         if config.num_air_rays is not None:
             options["num_air"] = config.num_air_rays
         sampler_cfg = build_component("samplers", config.pixel_sampler, options)
-        self.pixel_sampler = sampler_cfg.setup(projections=self.scene.train.projections)
+        train_p = np.asarray(self.scene.train.projections)
+        self.air_threshold, self.noise_sigma = noise_air_threshold(train_p)
+        self.notes: list[str] = []
+        if self.air_threshold > 0:
+            negative = float(np.mean(train_p < 0)) * 100
+            self.notes.append(
+                f"noisy line integrals ({negative:.1f} % of training pixels below 0, min {float(train_p.min()):.3g}): "
+                f"air = p <= {self.air_threshold:.3g} (3 x noise sigma {self.noise_sigma:.3g}), object above; "
+                "negative values are kept (no method needs them clipped)"
+            )
+            for note in self.notes:
+                _announce(note)
+        self.pixel_sampler = sampler_cfg.setup(projections=train_p, air_threshold=self.air_threshold)
         self.train_angles = torch.as_tensor(np.asarray(self.scene.train.angles), dtype=torch.float64)
         self.train_projections = torch.as_tensor(np.asarray(self.scene.train.projections), dtype=torch.float32).to(self.device)
         self.near, self.far = self.geometry.near_far
@@ -83,7 +144,8 @@ class CTDataManager:
         """The next training batch.
 
         Returns a dict: ``origins`` [R, 3], ``directions`` [R, 3] (model units),
-        ``projections`` [R] measured line integrals, ``is_air`` [R] bool (object
+        ``projections`` [R] measured line integrals (air rays may be slightly
+        negative on noisy data), ``is_air`` [R] bool (object
         rays first, then air rays), ``pixels`` [R, 2] ``(j, i)``, ``view`` (index
         into the training views), ``epoch``, ``near``, ``far`` (model units).
         """

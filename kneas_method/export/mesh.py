@@ -363,8 +363,16 @@ def export_meshes(
             jobs.append((f"threshold-{i + 1}", mu, t, False, f"mu = {t:.6g} (data units)"))
     colors = material_colors(len(jobs))
     combined = o3d.geometry.TriangleMesh()
+    from ..data.rtk_geometry import scanner_world_affine
+
+    world = scanner_world_affine(run.scene)
+    if world is not None:
+        result.notes.append("vertices in the scanner's world (RTK/ITK LPS, mm), where kneas-export volume's .mha and "
+                            "RTK's reconstruction of the same data lie")
     for i, (name, f, level, inside_negative, source) in enumerate(jobs):
         mesh, extractor = isosurface(f, grid, level, inside_negative=inside_negative)
+        if mesh is not None and world is not None:
+            mesh.transform(world)
         result.extractor = result.extractor or extractor
         stem = _slug(name)
         if mesh is None or len(mesh.triangles) == 0:

@@ -15,8 +15,8 @@ Files written (``out_dir``):
 Axis convention / affine
 ------------------------
 Array index ``image[a, b, c]`` is the voxel centred at ``(x_a, y_b, z_c)`` of
-:meth:`Geometry.voxel_centres` (SPEC §1), in mm. The NIfTI affine (sform and
-qform, code 1 "scanner", units mm) is therefore::
+:meth:`Geometry.voxel_centres` (SPEC §1), in mm. Its index -> kneas-mm affine
+(:func:`volume_affine`) is::
 
     [[dx, 0,  0,  x_0],
      [0,  dy, 0,  y_0],
@@ -24,12 +24,25 @@ qform, code 1 "scanner", units mm) is therefore::
      [0,  0,  0,  1  ]]
 
 with ``(dx, dy, dz)`` the voxel size in mm and ``(x_0, y_0, z_0)`` the first
-voxel centre in mm (``offOrigin`` included). NIfTI's world frame is RAS+; kneas
-identifies the scanner's x, y, z (z = rotation axis) with R, A, S, with no
-flips, so 3D Slicer and ITK-SNAP place the volume, the meshes of
-``kneas-export mesh`` (same mm frame) and the ground truth at the same
-positions. The scanner frame carries no anatomical orientation: Slicer's
-R/A/S labels are the scanner's x/y/z axes.
+voxel centre in mm (``offOrigin`` included). The NIfTI affine (sform and qform,
+code 1 "scanner", units mm) maps the index to NIfTI's RAS+ world:
+
+* **scenes imported from a scanner** (``kneas-data import``) carry
+  ``meta["world_affine_lps"]``, the map from kneas's frame (mm) to the
+  scanner's RTK/ITK world (LPS, mm); the NIfTI affine is
+  ``diag(-1, -1, 1, 1) @ world_affine_lps @ volume_affine`` (LPS -> RAS), so the
+  volume opens in a viewer exactly where RTK's reconstruction of the same data
+  does (rotation axis = world y, as RTK);
+* other scenes (simulated, NAF pickles) have no scanner world: kneas identifies
+  its x, y, z (z = rotation axis) with R, A, S, with no flips, so 3D Slicer and
+  ITK-SNAP place the volume, the meshes of ``kneas-export mesh`` (same mm frame)
+  and the ground truth at the same positions; Slicer's R/A/S labels are then
+  the scanner's x/y/z axes.
+
+When ITK is installed (``pip install 'kneas[scanner]'``) ``attenuation.mha`` (and
+``labels.mha``) are written too, for RTK users: the same world placement (LPS),
+stored with an identity direction (the array's axes permuted/flipped to the
+world axes, which is exact because the map is an axis permutation).
 """
 
 from __future__ import annotations
@@ -54,6 +67,40 @@ def volume_affine(geometry) -> np.ndarray:
         aff[i, i] = float(geometry.d_voxel[i]) * mm
         aff[i, 3] = first[i]
     return aff
+
+
+RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def world_affine_lps(scene) -> np.ndarray:
+    """kneas mm -> LPS mm [4, 4]: the scene's scanner frame map, else the identification kneas xyz = RAS."""
+    from ..data.rtk_geometry import scanner_world_affine
+
+    a = scanner_world_affine(scene)
+    return RAS_FROM_LPS.copy() if a is None else a  # no scanner world: kneas xyz = RAS, so LPS = diag(-1, -1, 1) @ kneas
+
+
+def nifti_affine(scene) -> np.ndarray:
+    """The ``[4, 4]`` voxel-index -> RAS mm affine written to NIfTI (module docs)."""
+    return RAS_FROM_LPS @ world_affine_lps(scene) @ volume_affine(scene.geometry)
+
+
+def write_mha(array: np.ndarray, scene, path: Path) -> Path:
+    """Write a kneas-order volume ``[nx, ny, nz]`` as ``.mha`` in LPS world (identity direction) through ITK."""
+    from ..data.itk_io import write_image
+    from ..data.rtk_geometry import itk_array_of_world, volume_to_world_array, world_grid_of
+
+    grid = world_grid_of(scene.geometry, world_affine_lps(scene))
+    return write_image(itk_array_of_world(volume_to_world_array(np.asarray(array), grid)), path,
+                       spacing=grid["spacing"], origin=grid["origin"], purpose="writing .mha volumes")
+
+
+def _itk_available() -> bool:
+    try:
+        import itk  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def reconstruct(run, *, chunk: int = 65536) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
@@ -98,8 +145,10 @@ def write_nifti(array: np.ndarray, affine: np.ndarray, path: Path, *, descriptio
 
 
 def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None, nifti: bool = True,
-                  chunk: int = 65536, air_threshold: float = 0.5) -> dict:
-    """Write the attenuation and label volumes (NIfTI + ``.npy``) and ``volume.json``.
+                  chunk: int = 65536, air_threshold: float = 0.5, mha: Optional[bool] = None) -> dict:
+    """Write the attenuation and label volumes (NIfTI + ``.npy``, ``.mha`` when ITK is there) and ``volume.json``.
+
+    ``mha``: True requires ITK, False skips it, None (default) writes it when ITK is installed.
 
     Returns the ``volume.json`` dict (paths, shape, voxel size, origin, affine, notes).
     """
@@ -110,15 +159,20 @@ def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None,
     geo = run.scene.geometry
     mu, weights, _ = reconstruct(run, chunk=chunk)
     labels = label_volume(mu, weights, thresholds, air_threshold)
-    aff = volume_affine(geo)
+    aff = nifti_affine(run.scene)
+    lps = world_affine_lps(run.scene)
+    imported = run.scene.meta.get("world_affine_lps") is not None
     info: dict = {
         "method": run.config.method,
         "scene": run.scene.name,
         "shape": list(mu.shape),
-        "voxel_mm": [float(aff[i, i]) for i in range(3)],
-        "origin_mm": [float(aff[i, 3]) for i in range(3)],
+        "voxel_mm": [float(v) * geo.mm_per_unit for v in geo.d_voxel],
+        "origin_mm": [float(v) for v in volume_affine(geo)[:3, 3]],
         "affine": aff.tolist(),
-        "axes": "image[a, b, c] at (x_a, y_b, z_c) mm, scanner x/y/z = NIfTI R/A/S (z = rotation axis)",
+        "world_affine_lps": lps.tolist(),
+        "axes": ("image[a, b, c] at (x_a, y_b, z_c) mm of kneas's frame; world LPS = world_affine_lps @ (x, y, z, 1) "
+                 "(the scanner's RTK/ITK world, rotation axis = world y); NIfTI affine = diag(-1,-1,1,1) @ that @ index affine")
+        if imported else "image[a, b, c] at (x_a, y_b, z_c) mm, scanner x/y/z = NIfTI R/A/S (z = rotation axis)",
         "attenuation_units": "data units (1/m; NAF normalised scale)",
         "files": {},
         "notes": [],
@@ -139,5 +193,13 @@ def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None,
         if labels is not None:
             write_nifti(labels, aff, out / "labels.nii.gz", description=f"kneas {run.config.method} material labels")
             info["files"]["labels_nifti"] = str(out / "labels.nii.gz")
+    if mha is None:
+        mha = _itk_available()
+    if mha:
+        write_mha(mu.astype(np.float32), run.scene, out / "attenuation.mha")
+        info["files"]["attenuation_mha"] = str(out / "attenuation.mha")
+        if labels is not None:
+            write_mha(labels, run.scene, out / "labels.mha")
+            info["files"]["labels_mha"] = str(out / "labels.mha")
     write_json(out / "volume.json", info)
     return info

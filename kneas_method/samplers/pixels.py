@@ -1,7 +1,10 @@
 """Per-projection object / air pixel sampler (SPEC §3).
 
 For each training view the sampler precomputes the flat indices of its object
-pixels (``p > 0``) and air pixels (``p == 0``). A draw for one view takes up to
+pixels (``p > air_threshold``) and air pixels (``p <= air_threshold``). With the
+default threshold 0 and noise-free data this is SPEC §1's ``p > 0`` / ``p == 0``;
+for noisy data the datamanager passes a threshold above the noise in air
+(:func:`kneas_method.datamanagers.ct.noise_air_threshold`). A draw for one view takes up to
 ``num_object`` object pixels and up to ``num_air`` air pixels, each without
 replacement (a view with fewer pixels than asked gives all it has).
 """
@@ -30,15 +33,17 @@ class ObjectAirPixelSampler:
 
     Args:
         projections: [N, nV, nU] line integrals (numpy or tensor) of the training views.
+        air_threshold: line integrals at or below it are air, above it object (default 0).
     """
 
-    def __init__(self, config: ObjectAirPixelSamplerConfig, *, projections):
+    def __init__(self, config: ObjectAirPixelSamplerConfig, *, projections, air_threshold: float = 0.0):
         self.config = config
+        self.air_threshold = float(air_threshold)
         p = torch.as_tensor(np.asarray(projections))
         self.n_u = int(p.shape[-1])
         flat = p.reshape(p.shape[0], -1)
-        self.object_index = [torch.nonzero(row > 0, as_tuple=False)[:, 0] for row in flat]
-        self.air_index = [torch.nonzero(row == 0, as_tuple=False)[:, 0] for row in flat]
+        self.object_index = [torch.nonzero(row > self.air_threshold, as_tuple=False)[:, 0] for row in flat]
+        self.air_index = [torch.nonzero(row <= self.air_threshold, as_tuple=False)[:, 0] for row in flat]
 
     def _draw(self, index: torch.Tensor, n: int, generator: torch.Generator) -> torch.Tensor:
         if n <= 0 or len(index) == 0:
