@@ -21,6 +21,20 @@ class WarmStartVolume:
     what: str
 
 
+def set_visual_hull(model, scene, label: str = "model") -> None:
+    """Give ``model`` its empty-space grid: the visual hull of the scene's training views
+    (``occupancy.visual_hull``; air = at or below the noise-aware air threshold)."""
+    from ..datamanagers.ct import noise_air_threshold
+    from ..occupancy import box_of, visual_hull
+
+    threshold, _ = noise_air_threshold(np.asarray(scene.train.projections))
+    occupied = visual_hull(scene.geometry, scene.train.angles, scene.train.projections,
+                           resolution=int(model.config.occupancy_resolution), air_threshold=threshold)
+    model.set_occupancy(occupied, *box_of(scene.geometry))
+    say(f"{label}: empty space: the visual hull of the {len(scene.train)} training views keeps "
+        f"{100 * float(occupied.float().mean()):.1f} % of the volume box ({occupied.shape[0]}^3 cells)")
+
+
 def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, label: str, tb=None,
                 warm: Optional[WarmStartVolume] = None) -> Trainer:
     """Build the stage's Trainer, resume it if it has checkpoints, else warm-start it from
@@ -28,6 +42,8 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
     trainer = Trainer(config, scene, run_dir, epochs=epochs, device=device, bounds=bounds, label=label, console=console,
                       tb=tb, tb_prefix=f"{label}/")
     path = trainer.resume()
+    if path is None and trainer.model.occupancy is not None:
+        set_visual_hull(trainer.model, scene, label)
     if path is not None:
         state = "complete" if trainer.complete else f"step {trainer.step}/{trainer.total_steps}"
         say(f"{label}: resuming from {path} ({state})")
