@@ -2,9 +2,38 @@
 
 * :mod:`.projector`: the matched Joseph pair ``forward`` (A) / ``back`` (Aᵀ, its exact
   adjoint), the reusable :class:`Projector`, and the voxel-driven
-  :class:`VoxelBackprojector` (unmatched).
+  :class:`VoxelBackprojector` (unmatched; the SART family's default back-projector).
+* :mod:`.iterative`: ``sart``, ``os_sart``, ``cgls``, ``asd_pocs`` (TIGRE-style functions of
+  ``(projections, geometry, angles, ...)`` returning ``[nx, ny, nz]`` float32 data units).
 """
 
+from .iterative import (
+    ALGORITHMS,
+    asd_pocs,
+    cgls,
+    interleaved_subsets,
+    os_sart,
+    sart,
+    spread_order,
+    total_variation,
+    tv_gradient,
+    view_order,
+)
 from .projector import Projector, VoxelBackprojector, back, forward
 
-__all__ = ["Projector", "VoxelBackprojector", "forward", "back"]
+__all__ = [
+    "Projector",
+    "VoxelBackprojector",
+    "forward",
+    "back",
+    "sart",
+    "os_sart",
+    "cgls",
+    "asd_pocs",
+    "spread_order",
+    "view_order",
+    "interleaved_subsets",
+    "total_variation",
+    "tv_gradient",
+    "ALGORITHMS",
+]

@@ -18,8 +18,9 @@ by the ray length per slice, ``voxel_a · |d| / |d_a|`` (metres). A volume of
 ones therefore integrates to exactly the box length along the dominant axis.
 
 Each ray is clipped to the box (grown by the half voxel the interpolation
-reaches): rays that miss it are skipped and the others sample only the slices
-they cross, gathered in a few slice windows per call.
+reaches): rays that miss it are skipped, and the others are sampled only on the
+blocks of ``BLOCK`` slices that their chord overlaps (the samples skipped
+this way are exactly zero, so clipping changes no value).
 
 ``back`` is the exact adjoint ``Aᵀ``: the same bilinear weights, transposed
 (scatter-added by ``grid_sampler_2d_backward``), so ``⟨A x, y⟩ = ⟨x, Aᵀ y⟩``
@@ -110,8 +111,8 @@ def _angles(angles) -> np.ndarray:
 
 # ------------------------------------------------------------ ray tables
 @dataclass
-class _Window:
-    """Rays of a view chunk with dominant axis ``axis`` that cross slices ``lo..hi-1`` of it.
+class _RayBlock:
+    """Rays of a view chunk with dominant axis ``axis`` whose chord overlaps the slice block ``lo..hi-1``.
 
     Attributes:
         axis: dominant axis (0, 1, 2 = x, y, z).
@@ -153,8 +154,9 @@ def _clip_to_box(o: torch.Tensor, d: torch.Tensor, lo: torch.Tensor, hi: torch.T
     return t_min.amax(-1).clamp_min(0.0), t_max.amin(-1)
 
 
-def _ray_windows(geometry: Geometry, angles: np.ndarray, device, dtype, block: int = BLOCK) -> list[_Window]:
-    """Joseph ray tables for the views ``angles`` [V] (one chunk): see :class:`_Window`."""
+def _ray_blocks(geometry: Geometry, angles: np.ndarray, device, dtype, block: int = BLOCK) -> list[_RayBlock]:
+    """Joseph ray tables for the views ``angles`` [V] (one chunk), one per (dominant axis, slice block):
+    see :class:`_RayBlock`. Rays missing the box (grown by half a voxel) are left out."""
     origins, dirs = geometry.rays(angles, device=device, dtype=torch.float64)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     n = torch.tensor(geometry.n_voxel, device=device, dtype=torch.float64)
@@ -165,7 +167,7 @@ def _ray_windows(geometry: Geometry, angles: np.ndarray, device, dtype, block: i
     hit = t_out > t_in
     axis = (d.abs() / vox).argmax(-1)
     first = box_lo + vox / 2  # first voxel centre per axis
-    out: list[_Window] = []
+    out: list[_RayBlock] = []
     for a in range(3):
         idx = torch.nonzero(hit & (axis == a)).reshape(-1)
         if idx.numel() == 0:
@@ -197,21 +199,21 @@ def _ray_windows(geometry: Geometry, angles: np.ndarray, device, dtype, block: i
             if sel.numel() == 0:
                 continue
             x_lo = first[a] + lo * vox[a]
-            out.append(_Window(
+            out.append(_RayBlock(
                 axis=a, lo=lo, hi=hi, index=idx[sel],
                 start=(g0[sel] + x_lo * gk[sel]).to(dtype), step=(gk[sel] * vox[a]).to(dtype), weight=weight[sel],
             ))
     return out
 
 
-def _split(window: _Window, max_rays: int) -> list[_Window]:
-    """``window`` in pieces of at most ``max_rays`` rays."""
-    if window.index.numel() <= max_rays:
-        return [window]
+def _split(table: _RayBlock, max_rays: int) -> list[_RayBlock]:
+    """``table`` in pieces of at most ``max_rays`` rays."""
+    if table.index.numel() <= max_rays:
+        return [table]
     return [
-        _Window(window.axis, window.lo, window.hi, window.index[i:i + max_rays], window.start[i:i + max_rays],
-                window.step[i:i + max_rays], window.weight[i:i + max_rays])
-        for i in range(0, window.index.numel(), max_rays)
+        _RayBlock(table.axis, table.lo, table.hi, table.index[i:i + max_rays], table.start[i:i + max_rays],
+                table.step[i:i + max_rays], table.weight[i:i + max_rays])
+        for i in range(0, table.index.numel(), max_rays)
     ]
 
 
@@ -247,7 +249,7 @@ class Projector:
         self.n_pixels = nu * nv
         per_view = self.n_pixels * max(geometry.n_voxel)
         self.views_per_chunk = int(views_per_chunk or max(1, self.max_samples // max(1, per_view)))
-        self._cache: dict[tuple, list[_Window]] = {}
+        self._cache: dict[tuple, list[_RayBlock]] = {}
         self._cache_bytes = 0
 
     @property
@@ -263,13 +265,13 @@ class Projector:
         return v
 
     def _chunks(self, views: np.ndarray):
-        """Yield ``(position, windows)``: slices of ``views`` and their ray tables."""
+        """Yield ``(position, tables)``: consecutive pieces of ``views`` and their ray tables."""
         for s in range(0, len(views), self.views_per_chunk):
             chunk = views[s:s + self.views_per_chunk]
             key = tuple(int(i) for i in chunk)
             tables = self._cache.get(key)
             if tables is None:
-                tables = _ray_windows(self.geometry, self.angles[chunk], self.device, self.dtype)
+                tables = _ray_blocks(self.geometry, self.angles[chunk], self.device, self.dtype)
                 size = sum(w.nbytes for w in tables)
                 if self._cache_bytes + size <= CACHE_BYTES:
                     self._cache[key] = tables
@@ -290,11 +292,11 @@ class Projector:
         out = torch.zeros(len(views) * self.n_pixels, device=self.device, dtype=self.dtype)
         for pos, tables in self._chunks(views):
             base = pos.start * self.n_pixels
-            for win in tables:
-                if slabs[win.axis] is None:
-                    slabs[win.axis] = self._slices(volume, win.axis)
-                for part in _split(win, max(1, self.max_samples // (win.hi - win.lo))):
-                    s = F.grid_sample(slabs[win.axis][part.lo:part.hi], part.grid(), mode="bilinear",
+            for blk in tables:
+                if slabs[blk.axis] is None:
+                    slabs[blk.axis] = self._slices(volume, blk.axis)
+                for part in _split(blk, max(1, self.max_samples // (blk.hi - blk.lo))):
+                    s = F.grid_sample(slabs[blk.axis][part.lo:part.hi], part.grid(), mode="bilinear",
                                       padding_mode="zeros", align_corners=False)  # [k, 1, R, 1]
                     out.index_add_(0, base + part.index, s.sum(0).reshape(-1) * part.weight)
         return out.reshape(len(views), nv, nu)
@@ -311,12 +313,12 @@ class Projector:
         acc = [None, None, None]
         for pos, tables in self._chunks(views):
             base = pos.start * self.n_pixels
-            for win in tables:
-                a = win.axis
+            for blk in tables:
+                a = blk.axis
                 b, c = _TRANSVERSE[a]
                 if acc[a] is None:
                     acc[a] = torch.zeros(shape[a], n_ch, shape[b], shape[c], device=self.device, dtype=self.dtype)
-                for part in _split(win, max(1, self.max_samples // (win.hi - win.lo))):
+                for part in _split(blk, max(1, self.max_samples // (blk.hi - blk.lo))):
                     k = part.hi - part.lo
                     vals = y[:, base + part.index] * part.weight  # [C, R]
                     grad_out = vals[None, :, :, None].expand(k, n_ch, vals.shape[1], 1)
