@@ -15,7 +15,7 @@ forward projector of :mod:`kneas_method.classical.projector`.
 
 Back-projector (``backprojector=``):
 
-* ``"matched"``: ``Aᵀ``, the exact adjoint of ``A``. CGLS uses it by default (its
+* ``"matched"``: ``Aᵀ``, the exact adjoint of ``A``. CGLS always uses it (its
   conjugate-gradient recursions assume it).
 * ``"voxel"``: voxel-driven back-projection (bilinear on the detector at each
   voxel's projection; :class:`~kneas_method.classical.projector.VoxelBackprojector`),
@@ -318,15 +318,13 @@ def os_sart(projections, geometry: Geometry, angles, *, subsets: int = 10, itera
                      init=init, device=device, progress=progress, return_tensor=return_tensor)
 
 
-def cgls(projections, geometry: Geometry, angles, *, iterations: int = 30, backprojector: str = "matched", init=None,
-         device=None, progress: Progress = None, return_tensor: bool = False):
+def cgls(projections, geometry: Geometry, angles, *, iterations: int = 30, init=None, device=None,
+         progress: Progress = None, return_tensor: bool = False):
     """CGLS: conjugate gradients on the normal equations ``AᵀA x = Aᵀb`` (no positivity;
     stopping early is the regulariser).
 
     Args:
         iterations: CG iterations (default 30); each costs one forward and one back projection.
-        backprojector: ``"matched"`` (default, ``Aᵀ``: what CG assumes) or ``"voxel"``
-            (RTK's choice; then the recursions are only approximately those of CG).
         init: start volume [nx, ny, nz], ``"fdk"``, or None for zeros.
         Others as :func:`sart`.
 
@@ -334,10 +332,8 @@ def cgls(projections, geometry: Geometry, angles, *, iterations: int = 30, backp
         [nx, ny, nz] float32 attenuation in data units (1/m).
     """
     iterations = _check_iterations("iterations", iterations)
-    if backprojector not in BACKPROJECTORS:
-        raise ConfigError(f"backprojector is {backprojector!r}; choose one of {', '.join(BACKPROJECTORS)}")
     proj, b, x = _setup(projections, geometry, angles, device, init)
-    back = proj.back if backprojector == "matched" else VoxelBackprojector(geometry, proj.angles, device=proj.device).back
+    back = proj.back
     b_norm = max(_norm(b), 1e-30)
     r = b - proj.forward(x) if init is not None else b.clone()
     p = back(r)
