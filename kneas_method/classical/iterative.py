@@ -224,8 +224,9 @@ class _SartKernel:
 
     @staticmethod
     def _inverse(v: torch.Tensor) -> torch.Tensor:
-        """``1 / V`` where a subset's rays reach the voxel, else 0."""
-        return torch.where(v > 1e-12, 1.0 / v.clamp_min(1e-12), torch.zeros_like(v))
+        """``1 / V``; where no ray of the subset reaches a voxel (``V = 0``) its numerator is 0 as well
+        (the same weights), so the huge value there multiplies an exact 0."""
+        return 1.0 / v.clamp_min(1e-12)
 
     def sweep(self, x: torch.Tensor, relaxation: float, positivity: bool) -> tuple[torch.Tensor, float]:
         """One pass over all subsets; returns ``(x, relative sweep residual)``."""
@@ -234,13 +235,12 @@ class _SartKernel:
             r = self.b[s] - self.proj.forward(x, s)  # [k, nV, nU]
             sq += float(torch.sum(r.double() ** 2))
             if self.v is not None:
-                upd = self.back(r * self.w[s], s) * self.v[k]
+                x.addcmul_(self.back(r * self.w[s], s), self.v[k], value=relaxation)
             else:
-                both = self.back(torch.stack([r * self.w[s], torch.ones_like(r)]), s)
-                upd = both[0] * self._inverse(both[1])
-            x = x.add_(upd, alpha=relaxation)
+                num, den = self.back(torch.stack([r * self.w[s], torch.ones_like(r)]), s)
+                x.addcdiv_(num, den.clamp_min_(1e-12), value=relaxation)
             if positivity:
-                x = x.clamp_(min=0.0)
+                x.clamp_(min=0.0)
         return x, math.sqrt(sq) / self.b_norm
 
 
