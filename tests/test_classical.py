@@ -187,6 +187,17 @@ def test_os_sart_with_one_view_per_subset_is_sart(tiny):
     assert res[-1] < 0.6 * res[0] and c.min() >= 0
 
 
+@pytest.mark.parametrize("backprojector", ["voxel", "matched"])
+def test_stored_and_recomputed_normalisers_agree(tiny, monkeypatch, backprojector):
+    from kneas_method.classical import iterative
+
+    args = (tiny.train.projections, tiny.geometry, tiny.train.angles)
+    stored = os_sart(*args, subsets=5, iterations=2, backprojector=backprojector)
+    monkeypatch.setattr(iterative, "NORMALISER_CACHE_BYTES", 0)  # back-project V with every update instead
+    np.testing.assert_allclose(os_sart(*args, subsets=5, iterations=2, backprojector=backprojector), stored,
+                               rtol=1e-4, atol=1e-6)
+
+
 @pytest.mark.parametrize("relaxation", [0.5, 1.0])
 def test_asd_pocs_lowers_tv_and_beats_sart(tiny, relaxation):
     # ASD-POCS is SART + TV steps: compare at equal iterations and equal relaxation

@@ -34,8 +34,8 @@ residual of the returned volume by at most one sweep.
 Weights: ``W = 1 / A 1`` per ray (rays that cross less than half a voxel of the
 volume get weight 0, as in TIGRE) is computed once per call; the per-view or
 per-subset ``V = Aᵀ 1`` (or its voxel-driven counterpart) is kept in memory when
-all of them fit ``NORMALISER_CACHE_BYTES`` (matched) and otherwise back-projected
-together with each update as a second channel, which costs little.
+all of them fit ``NORMALISER_CACHE_BYTES`` and otherwise back-projected together
+with each update as a second channel, which costs little.
 """
 
 from __future__ import annotations
@@ -198,10 +198,10 @@ BACKPROJECTORS = ("matched", "voxel")
 class _SartKernel:
     """The SART update for one subset of views at a time, with weights computed once.
 
-    ``W = 1 / A 1`` [N, nV, nU] (0 on rays crossing less than half a voxel). With the
-    matched back-projector, ``V_s = Aᵀ 1`` per subset ``s`` is stored when all of them
-    fit :data:`NORMALISER_CACHE_BYTES`, else back-projected with each update (as a second
-    channel, nearly free); the voxel-driven one always does the latter.
+    ``W = 1 / A 1`` [N, nV, nU] (0 on rays crossing less than half a voxel). The
+    normaliser ``V_s = B 1`` (``B`` the back-projector) per subset ``s`` is stored when all
+    of them fit :data:`NORMALISER_CACHE_BYTES`, else back-projected with each update (as a
+    second channel, at little extra cost).
     """
 
     def __init__(self, proj: Projector, b: torch.Tensor, subsets: list[np.ndarray], backprojector: str = "matched"):
@@ -217,9 +217,9 @@ class _SartKernel:
             self.back = VoxelBackprojector(proj.geometry, proj.angles, device=proj.device).back
         else:
             self.back = proj.back
-            vol_bytes = ones.numel() * ones.element_size()
-            if len(subsets) * vol_bytes <= NORMALISER_CACHE_BYTES:
-                self.v = [self._inverse(proj.back(torch.ones_like(b[s]), s)) for s in subsets]
+        vol_bytes = ones.numel() * ones.element_size()
+        if len(subsets) * vol_bytes <= NORMALISER_CACHE_BYTES:
+            self.v = [self._inverse(self.back(torch.ones_like(b[s]), s)) for s in subsets]
         self.b_norm = max(_norm(b), 1e-30)
 
     @staticmethod
