@@ -27,6 +27,7 @@ configuration:
 | k-neas | K (3) | shared | soft | on | automatic or given |
 | naf | — | NAF field (hash grid + MLP, no SDF) | — | off | — |
 | fdk | — | classical: FDK / FBP, no model | — | — | — |
+| sart, os-sart, cgls, asd-pocs | — | classical iterative (SPEC §7), no model | — | — | — |
 
 K of the K-material methods (kselector*, k-neas) is picked by BIC from the GMM
 fit (SPEC §4) when ``num_materials`` is None (the default) and the bounds are
@@ -49,8 +50,8 @@ from .registry import MethodSpecification
 Preset = Literal["auto", "paper", "cpu", "tiny"]
 BoundsSource = Literal["wide", "auto", "none"]
 BoundsMethod = Literal["gmm", "quantile", "bayes"]
-BoundsVolume = Literal["prior", "fdk"]
-WarmStart = Literal["none", "fdk"]
+BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
+WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
 
@@ -160,8 +161,8 @@ class TrainConfig(RunConfig):
             ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
         bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
             (the paper: a trained NeAS-1M model, SPEC §4) or a classical reconstruction
-            of the training views (``fdk``: no prior training; an option beside the
-            paper's procedure). None = the preset's (paper: prior; cpu: fdk).
+            of the training views (``fdk``, ``sart``, ``asd-pocs``, ...: no prior training;
+            an option beside the paper's procedure). None = the preset's (paper: prior; cpu: fdk).
         reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
             preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
         reconstruction: settings of the classical reconstruction used for the bounds
@@ -227,4 +228,20 @@ naf = MethodSpecification(
 fdk = MethodSpecification(
     config=ClassicalConfig(method="fdk", algorithm="fdk"),
     description="FDK baseline: filtered back-projection of the training views (no training, 0 parameters)",
+)
+sart = MethodSpecification(
+    config=ClassicalConfig(method="sart", algorithm="sart"),
+    description="SART: one update per view, 5 iterations, relaxation 0.5, positivity (no training, 0 parameters)",
+)
+os_sart = MethodSpecification(
+    config=ClassicalConfig(method="os-sart", algorithm="os-sart"),
+    description="OS-SART: SART updates on 10 view subsets, 10 iterations (no training, 0 parameters)",
+)
+cgls = MethodSpecification(
+    config=ClassicalConfig(method="cgls", algorithm="cgls"),
+    description="CGLS: conjugate gradients on the normal equations, stopped early (no training, 0 parameters)",
+)
+asd_pocs = MethodSpecification(
+    config=ClassicalConfig(method="asd-pocs", algorithm="asd-pocs"),
+    description="ASD-POCS: SART sweeps alternated with total-variation descent (Sidky & Pan 2008; no training, 0 parameters)",
 )

@@ -116,7 +116,8 @@ def test_resume_applies_safe_flags_and_refuses_the_others(tmp_path, capsys, monk
 def test_choices_are_listed_by_help_and_checked(tmp_path, capsys):
     code, out, _ = run_main(["k-neas", "--help"], capsys)
     assert code == 0
-    for flag, choices in (("--bounds-volume", "{None,prior,fdk}"), ("--trainer.warm-start", "{None,none,fdk}"),
+    for flag, choices in (("--bounds-volume", "{None,prior,fdk,sart,os-sart,cgls,asd-pocs}"),
+                          ("--trainer.warm-start", "{None,none,fdk,sart,os-sart,cgls,asd-pocs}"),
                           ("--preset", "{auto,paper,cpu,tiny}"), ("--bounds-method", "{gmm,quantile,bayes}")):
         assert re.search(rf"{re.escape(flag)} {re.escape(choices)}", out), flag
     bad = tmp_path / "bad.json"

@@ -1,4 +1,4 @@
-"""Simulator, geometry defaults, noise and the voxel projector."""
+"""Simulator, geometry defaults, noise, and the volume projector the simulator uses."""
 
 import math
 
@@ -15,8 +15,8 @@ from kneas_method.data.simulate import (
     simulate_from_volume,
     simulate_phantom,
 )
-from kneas_method.data.voxel_projector import project_volume
-from kneas_method.errors import ConfigError, SceneError
+from kneas_method.classical.projector import forward
+from kneas_method.errors import ConfigError, KneasError, SceneError
 
 
 class SphereStandIn:
@@ -110,7 +110,7 @@ def test_detector_sees_the_whole_volume_box_from_every_angle(mode):
     assert reach <= half_det  # nothing of the box falls off the detector
     assert reach > 0.9 * half_det  # and the detector is not needlessly large
     # Projecting a volume of ones: positive in the centre, vanishing at the corners.
-    p = project_volume(np.ones(g.n_voxel, np.float32), g, np.radians([0, 45, 90]))
+    p = forward(np.ones(g.n_voxel, np.float32), g, np.radians([0, 45, 90]))
     assert p[:, 11:13, 11:13].min() > 0 and p[:, 0, 0].max() == 0
 
 
@@ -179,36 +179,35 @@ def test_simulate_noise_option_changes_projections_reproducibly():
     assert np.abs(a.train.projections - clean.train.projections).mean() < 0.05
 
 
-def test_voxel_projector_agrees_with_exact_projection():
+def test_volume_projector_agrees_with_exact_projection():
     ph = SphereStandIn(radius=50.0)
     cfg = SimulationConfig(n_voxel=40, voxel_mm=4.0, n_detector=32, n_train=3, n_val=1)
     g = make_geometry(cfg)
     angles = np.radians([0.0, 50.0, 100.0])
     exact = ph.project(g, angles)
     vol = ph.volume(g)
-    approx = project_volume(vol, g, angles)
+    approx = forward(vol, g, angles)
     assert approx.shape == exact.shape and approx.dtype == np.float32
     obj = exact > 0
     rel = np.abs(approx[obj] - exact[obj]) / exact[obj]
-    assert np.median(rel) < 0.03
+    assert np.median(rel) < 0.01  # measured 0.5 % (the old trilinear ray marcher: the same)
     # partial-volume bleed outside the shadow is small, and the total attenuation is conserved
     assert np.abs(approx[~obj]).max() < 0.2 * exact.max()
-    assert approx.sum() == pytest.approx(exact.sum(), rel=0.02)
-    # chunking changes nothing; more samples per voxel barely changes anything
-    np.testing.assert_allclose(project_volume(vol, g, angles, chunk=97), approx, rtol=1e-5, atol=1e-7)
-    fine = project_volume(vol, g, angles, samples_per_voxel=4)
-    assert np.median(np.abs(fine[obj] - approx[obj]) / exact[obj]) < 0.01
+    assert approx.sum() == pytest.approx(exact.sum(), rel=0.005)
+    # batching changes nothing; float64 work agrees with float32
+    np.testing.assert_allclose(forward(vol, g, angles, max_samples=997), approx, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(forward(vol.astype(np.float64), g, angles), approx, rtol=1e-4, atol=1e-6)
 
 
-def test_voxel_projector_uniform_slab_exact_length():
+def test_volume_projector_uniform_slab_exact_length():
     # A volume of ones, parallel beam along x at angle 0 through the centre: integral = box length.
     cfg = SimulationConfig(n_voxel=(20, 8, 8), voxel_mm=5.0, n_detector=8, mode="parallel")
     g = make_geometry(cfg)
-    p = project_volume(np.ones(g.n_voxel, np.float32), g, [0.0])
-    # 95 mm between the outer voxel centres plus two half-voxel linear fades (2 x 2.5 mm) = 100 mm
+    p = forward(np.ones(g.n_voxel, np.float32), g, [0.0])
+    # one sample per voxel slice along x, 20 slices x 5 mm = 100 mm
     assert p[0, 3:5, 3:5] == pytest.approx(0.100, rel=0.005)
-    with pytest.raises(SceneError, match="nVoxel"):
-        project_volume(np.ones((4, 4, 4), np.float32), g, [0.0])
+    with pytest.raises(KneasError, match="nVoxel"):
+        forward(np.ones((4, 4, 4), np.float32), g, [0.0])
 
 
 def test_simulate_from_volume_uses_projector_and_records_meta():

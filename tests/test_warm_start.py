@@ -118,3 +118,26 @@ def test_occupancy_term_gives_a_gradient_where_omega_is_saturated():
     losses, g_occ = grad_of(0.01)
     assert float(losses["occupancy"].detach()) > 0
     assert (g_occ > 1e-4).all()  # every material's distance is pushed down (inside): the target reaches all three
+
+
+def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path, capsys):
+    """``--bounds-volume sart --trainer.warm-start asd-pocs``: both volumes are reconstructed once
+    (with the run's reconstruction options), the GMM is fitted on SART's, the model starts from
+    ASD-POCS's, and metrics.json says so."""
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),
+                          "--bounds-volume", "sart", "--trainer.warm-start", "asd-pocs", "--trainer.warm-start-steps", "20",
+                          "--reconstruction.iterations", "2"], capsys)
+    assert code == 0, err
+    assert "GMM is fitted on the SART reconstruction" in out and "fitting the model to the ASD-POCS reconstruction" in out
+    run_dir = run_dir_of(out)
+    bounds = json.loads((run_dir / "bounds.json").read_text())
+    assert bounds["volume"] == "sart" and "SART" in bounds["source"]
+    for name in ("sart", "asd-pocs"):
+        info = json.loads((run_dir / f"{name}_volume.json").read_text())
+        assert info["settings"]["algorithm"] == name and info["settings"]["iterations"] == 2
+        assert np.load(run_dir / f"{name}_volume.npy").shape == (24, 24, 24)
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert m["warm_start"] == "asd-pocs" and sorted(m["classical_volume"]) == ["asd-pocs", "sart"]
+    code, _, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"),
+                        "--trainer.warm-start", "sirt"], capsys)
+    assert code == 2 and "asd-pocs" in err and len(err.strip().splitlines()) == 1

@@ -1,21 +1,38 @@
 """Settings of a classical reconstruction (SPEC §7), shared by the classical methods
-(``kneas-train fdk ...``) and by the neural methods that start from a classical volume
-(``--bounds-volume``, ``--trainer.warm-start``)."""
+(``kneas-train fdk|sart|os-sart|cgls|asd-pocs ...``) and by the neural methods that start
+from a classical volume (``--bounds-volume``, ``--trainer.warm-start``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Optional
 
-Algorithm = Literal["fdk"]
+Algorithm = Literal["fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 ALGORITHMS: tuple[str, ...] = Algorithm.__args__
 FdkFilter = Literal["ram-lak", "shepp-logan", "cosine", "hann"]
+Backprojector = Literal["voxel", "matched"]
 
 
 @dataclass
 class ReconstructionOptions:
     """Attributes:
     filter: FDK ramp-filter window.
+    iterations: iterations of the iterative methods (None: the algorithm's default:
+        sart 5, os-sart 10, cgls 30, asd-pocs 10).
+    relaxation: SART-family relaxation λ in (0, 2] (None: sart 0.5, os-sart / asd-pocs 1.0).
+    subsets: OS-SART subsets (ASD-POCS: None = one view per update, as SART).
+    positivity: clamp the volume at 0 after every SART-family update (ASD-POCS always does).
+    backprojector: the iterative methods' back-projector: ``voxel`` (voxel-driven, as RTK's
+        defaults) or ``matched`` (the projector's exact adjoint; textbook CGLS).
+    tv_steps: ASD-POCS total-variation descent steps per iteration.
+    tv_alpha: ASD-POCS first TV step as a fraction of the first data step (the TV weight).
     """
 
     filter: FdkFilter = "ram-lak"
+    iterations: Optional[int] = None
+    relaxation: Optional[float] = None
+    subsets: Optional[int] = None
+    positivity: bool = True
+    backprojector: Backprojector = "voxel"
+    tv_steps: int = 20
+    tv_alpha: float = 0.01

@@ -11,6 +11,12 @@ import numpy as np
 from ..errors import ConfigError
 from .options import ALGORITHMS, ReconstructionOptions
 
+# Iterations when ReconstructionOptions.iterations is None (SART 5: RTK's usual setting and the
+# reference; CGLS 30 as RTK's usual, see benchmarks/classical.py).
+DEFAULT_ITERATIONS = {"sart": 5, "os-sart": 10, "cgls": 30, "asd-pocs": 10}
+DEFAULT_RELAXATION = {"sart": 0.5, "os-sart": 1.0, "asd-pocs": 1.0}
+DEFAULT_SUBSETS = 10  # OS-SART
+
 
 @dataclass
 class Reconstruction:
@@ -22,17 +28,46 @@ class Reconstruction:
     settings: dict
 
 
+def algorithm_settings(algorithm: str, options: ReconstructionOptions, n_views: int) -> dict:
+    """The settings ``algorithm`` runs with (``options`` with the defaults filled), JSON-able."""
+    o = options
+    if algorithm == "fdk":
+        return {"filter": o.filter}
+    settings = {"iterations": o.iterations or DEFAULT_ITERATIONS[algorithm], "backprojector": o.backprojector}
+    if algorithm == "cgls":
+        return settings
+    settings["relaxation"] = o.relaxation or DEFAULT_RELAXATION[algorithm]
+    if algorithm in ("sart", "os-sart"):
+        settings["positivity"] = o.positivity
+    if algorithm == "os-sart":
+        settings["subsets"] = o.subsets or min(DEFAULT_SUBSETS, n_views)
+    if algorithm == "asd-pocs":
+        settings.update(subsets=o.subsets, tv_steps=o.tv_steps, tv_alpha=o.tv_alpha)
+    return settings
+
+
 def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] = None, *, device="cpu",
                 progress: Optional[Callable[[int, int, float], None]] = None) -> Reconstruction:
     """Reconstruct ``scene``'s training views with ``algorithm`` (one of :data:`ALGORITHMS`).
 
-    ``progress(iteration, total, residual)`` is called by the iterative methods."""
+    ``progress(iteration, total, residual)`` is called by the iterative methods after each iteration
+    (``residual``: relative data residual ‖Ax − b‖ / ‖b‖)."""
     options = options or ReconstructionOptions()
     if algorithm not in ALGORITHMS:
         raise ConfigError(f"classical algorithm {algorithm!r} is not known; use one of {', '.join(ALGORITHMS)}")
+    settings = algorithm_settings(algorithm, options, len(scene.train))
     t0 = time.perf_counter()
-    from .fdk import fdk_reconstruct
+    if algorithm == "fdk":
+        from .fdk import fdk_reconstruct
 
-    volume = fdk_reconstruct(scene, filter=options.filter, device=device)
-    settings = {"algorithm": "fdk", "filter": options.filter, "views": len(scene.train)}
-    return Reconstruction(np.asarray(volume, dtype=np.float32), time.perf_counter() - t0, settings)
+        volume = fdk_reconstruct(scene, filter=options.filter, device=device)
+    else:
+        from . import iterative
+
+        s = dict(settings)
+        if algorithm == "asd-pocs":
+            s.update(n_tv=s.pop("tv_steps"), alpha=s.pop("tv_alpha"))
+        function = iterative.ALGORITHMS[algorithm]
+        volume = function(scene.train.projections, scene.geometry, scene.train.angles, device=device, progress=progress, **s)
+    return Reconstruction(np.asarray(volume, dtype=np.float32), time.perf_counter() - t0,
+                          {"algorithm": algorithm, **settings, "views": len(scene.train)})

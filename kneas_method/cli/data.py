@@ -58,7 +58,7 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--photons", type=float, default=1e5, help="photons per pixel for --noise")
     g.add_argument("--electronic-sigma", type=float, default=10.0, help="electronic noise std (counts)")
     g.add_argument("--seed", type=int, default=0)
-    s.add_argument("--device", default=None, help="torch device for the voxel projector (default cpu)")
+    s.add_argument("--device", default=None, help="torch device for the volume projector (default cpu)")
 
     m = sub.add_parser("import", help="import your own scan: projection images + RTK geometry XML -> scene pickle")
     m.add_argument("projections", nargs="+", metavar="PROJECTIONS",

@@ -10,8 +10,10 @@ Writes ``metrics.json`` and figures to ``-o DIR`` (default ``RUN_DIR/eval-<times
 * 3D: PSNR/SSIM at the voxel centres with the exact unit conversion
   (``psnr3d``, ``ssim3d``) and the least-squares-rescaled variant
   (``psnr3d_ls``, ``ssim3d_ls``, ``ls_scale``);
-* built-in scenes, SDF methods: per ground-truth material Dice, Chamfer distance
-  (mm) and F-score at one voxel, with the material matching
+* built-in scenes: per ground-truth material Dice, Chamfer distance (mm) and F-score at
+  one voxel, with the material matching. SDF methods: labels and surfaces from the
+  fields; methods without (classical, NAF): the volume thresholded at the automatic GMM
+  bounds fitted on it, the way a user would segment it
   (:mod:`kneas_method.evaluation.surfaces` documents the definitions).
 """
 
@@ -55,8 +57,11 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
 
         metrics["materials"] = material_metrics(run.model, run.scene, factor=grid_factor, air_threshold=air_threshold,
                                                 surfaces=surfaces and run.scene.membership is not None)
-    elif run.scene.labels is not None:
-        metrics["materials_note"] = f"{run.config.method} has no signed distance fields, so no material labels or surfaces to score"
+    elif run.scene.labels is not None and vol is not None:
+        from ..evaluation.surfaces import volume_material_metrics
+
+        metrics["materials"] = volume_material_metrics(vol, run.scene, seed=int(run.config.seed),
+                                                       surfaces=surfaces and run.scene.membership is not None)
     return metrics, proj, vol
 
 

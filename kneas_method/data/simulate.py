@@ -20,7 +20,7 @@ from ..geometry import Geometry
 from .scene import Scene, Views
 
 # Bumped whenever the simulator's output for a given config changes (scene caches key on it).
-SIMULATOR_VERSION = 1
+SIMULATOR_VERSION = 2  # 2: simulate_from_volume projects with the Joseph projector of kneas_method.classical
 # Bumped when the noise model's output changes; only scenes simulated with noise key on it.
 # 2: negative line integrals in air are kept (as TIGRE's noise gives), no longer clipped at 0.
 NOISE_MODEL_VERSION = 2
@@ -275,7 +275,7 @@ def simulate_from_volume(
     device=None,
     progress: Progress = None,
 ) -> Scene:
-    """Simulate a scene from a voxel volume with the trilinear voxel projector.
+    """Simulate a scene from a voxel volume with the Joseph projector (:func:`kneas_method.classical.projector.forward`).
 
     Args:
         volume: [nx, ny, nz] attenuation in data units (1/m; NAF: normalised to [0, 1]).
@@ -289,7 +289,7 @@ def simulate_from_volume(
     Returns:
         Scene whose ``image`` is ``volume`` (float32) and projections [N, nV, nU] (metres).
     """
-    from .voxel_projector import project_volume
+    from ..classical.projector import forward
 
     cfg = cfg or SimulationConfig()
     vol = np.asarray(volume, dtype=np.float32)
@@ -303,9 +303,9 @@ def simulate_from_volume(
     train_a, val_a = make_angles(cfg)
     t0 = time.perf_counter()
     _say(progress, f"projecting {len(train_a)} training views")
-    train_p = project_volume(vol, geometry, train_a, device=device)
+    train_p = forward(vol, geometry, train_a, device=device)
     _say(progress, f"projecting {len(val_a)} held-out views")
-    val_p = project_volume(vol, geometry, val_a, device=device)
+    val_p = forward(vol, geometry, val_a, device=device)
     train_p, val_p = _finish(cfg, train_p, val_p)
     all_meta = _meta(cfg, simulation_seconds=round(time.perf_counter() - t0, 3))
     all_meta["simulation"]["n_voxel"] = list(vol.shape)

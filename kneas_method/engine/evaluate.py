@@ -8,7 +8,7 @@ Used by ``kneas-train`` at the end of a run and by ``kneas-eval``:
   metrics on the model's attenuation sampled at the voxel centres, data units.
 * :func:`evaluate_volume` ``(volume, scene) -> dict``: the same metrics for a
   voxel volume (FDK): 2D metrics by forward-projecting the volume to the
-  held-out views (``data.voxel_projector``), 3D metrics directly.
+  held-out views (``classical.projector.forward``, Joseph), 3D metrics directly.
 
 Both return JSON-able dicts: ``psnr2d``, ``ssim2d`` (means over the held-out
 views), ``psnr2d_per_view``, ``ssim2d_per_view``, ``n_views``; with a ground
@@ -133,14 +133,14 @@ def evaluate_model(model, scene, config, device, *, progress: Progress = None, r
 def evaluate_volume(volume, scene, *, return_arrays: bool = False, progress: Progress = None):
     """Metrics of a voxel volume [nx, ny, nz] (data units, the scene's grid).
 
-    2D: the volume is forward-projected (trilinear, half-voxel steps) to every
+    2D: the volume is forward-projected (Joseph projector, one sample per voxel slice) to every
     held-out view and scored like a model's rendering; 3D: compared with the
     ground truth, if any. ``progress(done_views, total_views)``.
     """
-    from ..data.voxel_projector import project_volume
+    from ..classical.projector import forward
 
     vol = np.asarray(volume.detach().cpu() if hasattr(volume, "detach") else volume, dtype=np.float32)
-    proj = project_volume(vol, scene.geometry, np.asarray(scene.val.angles), progress=progress)
+    proj = forward(vol, scene.geometry, np.asarray(scene.val.angles), progress=progress)
     metrics = model_metrics_from_arrays(proj, scene, vol)
     return (metrics, (proj, vol)) if return_arrays else metrics
 

@@ -56,6 +56,7 @@ voxel (the smallest voxel side, mm; :func:`metrics.fscore`).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any, Optional, Sequence
 
 import numpy as np
@@ -316,18 +317,94 @@ def material_metrics(
     """
     if not getattr(model, "has_surfaces", True):
         raise KneasError("material metrics need a model with signed distance fields; NAF/FDK volumes have no materials")
-    if scene.labels is None:
-        raise KneasError(f"scene {scene.name!r} has no ground-truth labels; material metrics need a built-in scene")
+    _check_labels(scene)
     geo = scene.geometry
     q = query_grid(model, geo, keys=("mu", "weights", "mu_materials"), chunk=chunk)
     if "weights" not in q:
         raise KneasError("the model's query gives no material weights; it has no materials")
     pred = labels_from_weights(q["weights"], air_threshold)
-    K = q["weights"].shape[-1]
+    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], pred, mu=q.get("mu"))
+    del q
+
+    def visible(fgeo):  # [..., K] fields negative where each material is the visible one
+        return visible_fields(query_grid(model, fgeo, keys=("distances",), chunk=chunk)["distances"])
+
+    definition = ("labels: 1+argmax weight, air where total weight < air_threshold; predicted material k -> GT label with the "
+                  "nearest attenuation level to the mean predicted attenuation mu where it is the label; surfaces: visible-region SDF "
+                  "e_k = max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm")
+    settings = {"air_threshold": float(air_threshold), "grid_factor": int(factor)}
+    return _score_materials(scene, pred, mean_mu, visible if surfaces else None, fine=factor, definition=definition,
+                            settings=settings)
+
+
+def threshold_labels(volume, boundaries: Sequence[float], air_cut: float) -> np.ndarray:
+    """Material labels of a volume [nx, ny, nz] by thresholds: 0 (air) where ``mu < air_cut``,
+    else ``1 + k`` for ``boundaries[k] <= mu < boundaries[k+1]`` (the last class open above)."""
+    v = np.asarray(volume, dtype=np.float32)
+    inner = np.asarray(boundaries, dtype=np.float64)[1:-1]
+    lab = (np.searchsorted(inner, v, side="right") + 1).astype(np.uint8)
+    lab[v < air_cut] = 0
+    return lab
+
+
+def threshold_fields(volume, boundaries: Sequence[float], air_cut: float) -> np.ndarray:
+    """Signed fields [nx, ny, nz, K] (data units), negative exactly where :func:`threshold_labels`
+    gives class k: ``max(lo_k - mu, mu - hi_k)`` with ``lo_0 = air_cut`` and ``hi_{K-1} = inf``."""
+    v = np.asarray(volume, dtype=np.float32)
+    b = [float(x) for x in boundaries]
+    K = len(b) - 1
+    lo = [max(air_cut, b[0])] + b[1:K]
+    out = np.empty(v.shape + (K,), dtype=np.float32)
+    for k in range(K):
+        out[..., k] = lo[k] - v if k == K - 1 else np.maximum(lo[k] - v, v - b[k + 1])
+    return out
+
+
+def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int = 4, surfaces: bool = True) -> dict[str, Any]:
+    """Per-material Dice and surface errors of a voxel volume [nx, ny, nz] (data units; a
+    classical reconstruction or a NAF field sampled at the voxel centres), segmented the way a
+    user would: thresholds at the automatic GMM bounds fitted on the volume itself
+    (:class:`~kneas_method.bounds.GMMBounds`, K by BIC up to ``max_components``), air below half
+    the lowest class mean. Classes are matched to ground-truth labels like a model's materials;
+    surfaces are the iso-surfaces of the thresholds (marching cubes of :func:`threshold_fields`
+    on the voxel grid). Same keys as :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
+    from ..bounds import GMMBounds
+
+    _check_labels(scene)
+    vol = np.asarray(volume, dtype=np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the GMM's remarks are kept in the result's notes
+        gmm = GMMBounds(random_state=int(seed), max_components=max_components).fit(vol)
+    boundaries = [float(x) for x in gmm.boundaries_]
+    air_cut = 0.5 * float(gmm.means_[0])
+    pred = threshold_labels(vol, boundaries, air_cut)
+    K = len(boundaries) - 1
+    mean_mu = np.array([float(vol[pred == k + 1].mean()) if (pred == k + 1).any() else float(gmm.means_[k])
+                        for k in range(K)])
+    fields = threshold_fields(vol, boundaries, air_cut)
+    definition = ("labels: thresholds at the GMM bounds fitted on the volume (K by BIC), air below half the lowest class mean; "
+                  "class k -> GT label with the nearest attenuation level to the class's mean mu; surfaces: iso-surfaces of the "
+                  "thresholds (marching cubes on the voxel grid) vs exact membership on a grid refined by 2, mm")
+    settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_)}
+    return _score_materials(scene, pred, mean_mu, (lambda fgeo: fields) if surfaces else None, fine=2,
+                            definition=definition, settings=settings, field_geometry=scene.geometry)
+
+
+def _check_labels(scene) -> None:
+    if scene.labels is None:
+        raise KneasError(f"scene {scene.name!r} has no ground-truth labels; material metrics need a built-in scene")
+
+
+def _score_materials(scene, pred: np.ndarray, mean_mu: np.ndarray, fields, *, fine: int, definition: str, settings: dict,
+                     field_geometry=None) -> dict[str, Any]:
+    """Dice (and, with ``fields(geometry) -> [..., K]`` signed fields, Chamfer / F-score) of
+    predicted labels ``pred`` (0 air, 1..K) whose classes have mean attenuation ``mean_mu [K]``.
+    The fields are sampled on ``field_geometry`` (default: the scene's grid refined by ``fine``)."""
+    geo = scene.geometry
+    K = len(mean_mu)
     levels = gt_levels(scene)
     M = len(levels)
     names = list(scene.materials) if len(scene.materials) == M else [f"label {m}" for m in range(1, M + 1)]
-    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], pred, mu=q.get("mu"))
     matching = match_materials(mean_mu, levels)
     mapped = map_labels(pred, matching)
     gt = np.asarray(scene.labels)
@@ -338,11 +415,8 @@ def material_metrics(
         per[names[m - 1]] = {"label": m, "level": float(levels[m - 1]), "dice": float(dices[m]),
                              "predicted_materials": [k + 1 for k in range(K) if matching[k] == m]}
     result: dict[str, Any] = {
-        "definition": "labels: 1+argmax weight, air where total weight < air_threshold; predicted material k -> GT label with the "
-                      "nearest attenuation level to the mean predicted attenuation mu where it is the label; surfaces: visible-region SDF e_k = "
-                      "max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm",
-        "air_threshold": float(air_threshold),
-        "grid_factor": int(factor),
+        "definition": definition,
+        **settings,
         "fscore_threshold_mm": voxel_mm,
         "gt_levels": [float(v) for v in levels],
         "matching": [{"material": k + 1, "mean_mu": float(mean_mu[k]), "gt_label": int(matching[k]),
@@ -350,18 +424,16 @@ def material_metrics(
         "dice_matrix": _dice_matrix(pred, gt, K, M),
         "materials": per,
     }
-    del q
-    if surfaces:
-        fgeo = fine_geometry(geo, factor)
-        d = query_grid(model, fgeo, keys=("distances",), chunk=chunk)["distances"]
-        e = visible_fields(d)
-        del d
+    if fields is not None:
+        fgeo = fine_geometry(geo, fine)
+        pgeo = field_geometry or fgeo
+        e = fields(pgeo)
         gt_fine = membership_grid(scene, fgeo)
         for m in range(1, M + 1):
             entry = per[names[m - 1]]
             ks = [k for k in range(K) if matching[k] == m]
             gt_pts = surface_points_from_labels(gt_fine == m, fgeo)
-            pred_pts = _sdf_surface_points(np.min(e[..., ks], axis=-1), fgeo) if ks else np.zeros((0, 3))
+            pred_pts = _sdf_surface_points(np.min(e[..., ks], axis=-1), pgeo) if ks else np.zeros((0, 3))
             entry["gt_surface_points"] = int(len(gt_pts))
             entry["pred_surface_points"] = int(len(pred_pts))
             if len(gt_pts) == 0 or len(pred_pts) == 0:
@@ -376,7 +448,7 @@ def material_metrics(
     result["dice_mean"] = float(np.mean([v["dice"] for v in vals]))
     ch = [v["chamfer_mm"] for v in vals if v.get("chamfer_mm") is not None]
     fs = [v["fscore"] for v in vals if v.get("fscore") is not None]
-    if surfaces:
+    if fields is not None:
         result["chamfer_mm_mean"] = float(np.mean(ch)) if ch else None
         result["fscore_mean"] = float(np.mean(fs)) if fs else None
     return result

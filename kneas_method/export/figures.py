@@ -98,9 +98,9 @@ def export_figures(
             projections_sel = render_views(run.model, scene, np.asarray(scene.val.angles)[idx], device=dev, chunk=eval_chunk,
                                            n_samples=run.config.model.num_eval_samples)
         else:
-            from ..data.voxel_projector import project_volume
+            from ..classical.projector import forward
 
-            projections_sel = project_volume(np.asarray(run.volume, dtype=np.float32), scene.geometry, np.asarray(scene.val.angles)[idx])
+            projections_sel = forward(np.asarray(run.volume, dtype=np.float32), scene.geometry, np.asarray(scene.val.angles)[idx])
     else:
         projections_sel = np.asarray(projections)[idx]
     for j, i in enumerate(idx):

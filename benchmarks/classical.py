@@ -1,0 +1,141 @@
+"""Classical reconstructions on the built-in scenes: 3D PSNR / SSIM and wall time (not part of the test suite).
+
+    python benchmarks/classical.py                                   # foot, all algorithms, default settings
+    python benchmarks/classical.py --scenes foot,jaw,chest,abdomen --algorithms sart,asd-pocs
+    python benchmarks/classical.py --runs "sart:iterations=5" "sart:iterations=10" "cgls:iterations=30" \\
+        --threads 2 --out benchmarks/results/classical_cpu.json
+
+A run is ``algorithm[:key=value,...]`` (keyword arguments of
+:mod:`kneas_method.classical.iterative`: ``iterations``, ``relaxation``,
+``subsets``, ``backprojector``, ``n_tv``, ``alpha``, ...; values are parsed as
+Python literals). ``--algorithms`` with ``--iterations`` is a shorthand for runs
+with default settings. Every run reconstructs from the scene's training views
+on its own voxel grid; PSNR/SSIM are SPEC §5's primary 3D figures
+(``volume_metrics``: data units, peak 1, no fitting). The wall time covers the
+whole call (weights included) at ``--threads`` torch threads. The machine
+(CPU count, threads, load average before and after each run) is recorded,
+since other work on a shared machine slows every run.
+
+Built-in scenes are simulated once and cached (``$KNEAS_CACHE``, see
+``kneas_method.data.scenes``). The JSON (``--out``) holds one row per
+scene x run and the command lines that produced them (``--append`` adds to an
+existing file); a table is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+HERE = Path(__file__).resolve().parent
+
+
+def parse_run(text: str) -> tuple[str, dict]:
+    """``"sart:iterations=5,relaxation=0.5"`` -> ``("sart", {"iterations": 5, "relaxation": 0.5})``."""
+    name, _, rest = text.partition(":")
+    kwargs = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"error: run option {item!r} in {text!r} must be key=value")
+        try:
+            kwargs[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            kwargs[key.strip()] = value.strip()
+    return name.strip(), kwargs
+
+
+def machine(threads: int) -> dict:
+    return {
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": threads,
+        "torch": torch.__version__,
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+
+
+def main(argv=None) -> int:
+    from kneas_method.classical import ALGORITHMS
+    from kneas_method.data.scenes import resolve_scene
+    from kneas_method.evaluation.metrics import volume_metrics
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default="foot", help="comma-separated built-in names or NAF pickle paths")
+    ap.add_argument("--algorithms", default=",".join(ALGORITHMS), help="comma-separated, used when --runs is not given")
+    ap.add_argument("--iterations", type=int, default=None, help="iterations for every --algorithms run (default: each one's own)")
+    ap.add_argument("--runs", nargs="*", default=None, help="explicit runs 'algorithm[:key=value,...]'")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
+    ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
+    args = ap.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    if args.runs:
+        runs = [parse_run(r) for r in args.runs]
+    else:
+        extra = {} if args.iterations is None else {"iterations": args.iterations}
+        runs = [(a.strip(), dict(extra)) for a in args.algorithms.split(",") if a.strip()]
+    for name, _ in runs:
+        if name not in ALGORITHMS:
+            raise SystemExit(f"error: unknown algorithm {name!r}; choose from {', '.join(ALGORITHMS)}")
+
+    rows = []
+    header = f"{'scene':9s} {'algorithm':9s} {'settings':44s} {'psnr3d':>7s} {'ssim3d':>7s} {'seconds':>8s} {'residual':>8s} {'load':>9s}"
+    print(header)
+    print("-" * len(header))
+    for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
+        scene = resolve_scene(spec)
+        b, g, angles = scene.train.projections, scene.geometry, scene.train.angles
+        for name, kwargs in runs:
+            residuals = []
+            load0 = os.getloadavg()[0]
+            t0 = time.perf_counter()
+            vol = ALGORITHMS[name](b, g, angles, device=args.device, progress=lambda i, n, r: residuals.append(r), **kwargs)
+            seconds = time.perf_counter() - t0
+            load1 = os.getloadavg()[0]
+            m = volume_metrics(vol, scene.image) if scene.image is not None else {}
+            row = {
+                "scene": scene.name, "algorithm": name, "settings": kwargs, "iterations": len(residuals),
+                "psnr3d": m.get("psnr3d"), "ssim3d": m.get("ssim3d"), "seconds": round(seconds, 2),
+                "residual": residuals[-1] if residuals else None, "residuals": residuals,
+                "load_avg_1m": [round(load0, 2), round(load1, 2)],
+            }
+            rows.append(row)
+            settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
+            print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
+                  f"{row['ssim3d'] or float('nan'):7.3f} {seconds:8.1f} {row['residual']:8.4f} {load0:4.1f}/{load1:4.1f}",
+                  flush=True)
+    if args.out:
+        path = Path(args.out)
+        command = "python benchmarks/classical.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        out = {
+            "benchmark": "classical",
+            "commands": [],
+            "machine": machine(args.threads),
+            "note": "psnr3d/ssim3d: SPEC §5 primary 3D figures (data units, peak 1, no fitting); seconds: wall time of the "
+                    "whole call; residual: the algorithm's last reported ||Ax-b||/||b|| (SART family: sweep residual); "
+                    "load_avg_1m: machine load before/after the run (shared machine)",
+            "rows": [],
+        }
+        if args.append and path.is_file():
+            out = json.loads(path.read_text())
+        out["commands"].append(command)
+        out["rows"].extend(rows)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(out, indent=2) + "\n")
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
