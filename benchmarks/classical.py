@@ -5,10 +5,12 @@
     python benchmarks/classical.py --runs "sart:iterations=5" "sart:iterations=10" "cgls:iterations=30" \\
         --threads 2 --out benchmarks/results/classical_cpu.json
 
-A run is ``algorithm[:key=value,...]`` (keyword arguments of
-:mod:`kneas_method.classical.iterative`: ``iterations``, ``relaxation``,
-``subsets``, ``backprojector``, ``n_tv``, ``alpha``, ...; values are parsed as
-Python literals). ``--algorithms`` with ``--iterations`` is a shorthand for runs
+A run is ``algorithm[:key=value,...]`` (``fdk``, ``sart``, ``os-sart``, ``cgls``,
+``asd-pocs`` with fields of ``ReconstructionOptions``: ``iterations``, ``relaxation``,
+``subsets``, ``positivity``, ``backprojector``, ``tv_steps``, ``tv_alpha``, ``filter``;
+values are parsed as Python literals): the same call ``kneas-train ALGORITHM`` makes
+(``kneas_method.classical.reconstruct``). ``--dice`` adds the per-material Dice and
+Chamfer of ``kneas-eval`` (the volume thresholded at the GMM bounds fitted on it). ``--algorithms`` with ``--iterations`` is a shorthand for runs
 with default settings. Every run reconstructs from the scene's training views
 on its own voxel grid; PSNR/SSIM are SPEC §5's primary 3D figures
 (``volume_metrics``: data units, peak 1, no fitting). The wall time covers the
@@ -64,9 +66,11 @@ def machine(threads: int) -> dict:
 
 
 def main(argv=None) -> int:
-    from kneas_method.classical import ALGORITHMS
+    from kneas_method.classical.options import ALGORITHMS, ReconstructionOptions
+    from kneas_method.classical.reconstruct import reconstruct
     from kneas_method.data.scenes import resolve_scene
     from kneas_method.evaluation.metrics import volume_metrics
+    from kneas_method.evaluation.surfaces import volume_material_metrics
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="foot", help="comma-separated built-in names or NAF pickle paths")
@@ -75,6 +79,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", nargs="*", default=None, help="explicit runs 'algorithm[:key=value,...]'")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval)")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)
@@ -95,25 +100,34 @@ def main(argv=None) -> int:
     print("-" * len(header))
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         scene = resolve_scene(spec)
-        b, g, angles = scene.train.projections, scene.geometry, scene.train.angles
         for name, kwargs in runs:
             residuals = []
             load0 = os.getloadavg()[0]
-            t0 = time.perf_counter()
-            vol = ALGORITHMS[name](b, g, angles, device=args.device, progress=lambda i, n, r: residuals.append(r), **kwargs)
-            seconds = time.perf_counter() - t0
+            try:
+                options = ReconstructionOptions(**kwargs)
+            except TypeError as exc:
+                raise SystemExit(f"error: run {name}:{kwargs}: {exc}; use fields of ReconstructionOptions") from None
+            rec = reconstruct(name, scene, options, device=args.device,
+                              progress=lambda i, n, r: residuals.append(r))
+            vol, seconds = rec.volume, rec.seconds
             load1 = os.getloadavg()[0]
             m = volume_metrics(vol, scene.image) if scene.image is not None else {}
             row = {
-                "scene": scene.name, "algorithm": name, "settings": kwargs, "iterations": len(residuals),
+                "scene": scene.name, "algorithm": name, "settings": rec.settings, "iterations": len(residuals),
                 "psnr3d": m.get("psnr3d"), "ssim3d": m.get("ssim3d"), "seconds": round(seconds, 2),
                 "residual": residuals[-1] if residuals else None, "residuals": residuals,
                 "load_avg_1m": [round(load0, 2), round(load1, 2)],
             }
+            if args.dice and scene.labels is not None:
+                mm = volume_material_metrics(vol, scene, surfaces=scene.membership is not None)
+                row["dice"] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
+                row["dice_mean"] = mm["dice_mean"]
+                row["chamfer_mm_mean"] = mm.get("chamfer_mm_mean")
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
-                  f"{row['ssim3d'] or float('nan'):7.3f} {seconds:8.1f} {row['residual']:8.4f} {load0:4.1f}/{load1:4.1f}",
+                  f"{row['ssim3d'] or float('nan'):7.3f} {seconds:8.1f} {row['residual'] or float('nan'):8.4f} {load0:4.1f}/{load1:4.1f}"
+                  + (f"  dice {row['dice']}" if "dice" in row else ""),
                   flush=True)
     if args.out:
         path = Path(args.out)

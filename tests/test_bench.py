@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from kneas_method.bench import aggregate, backends, grid, paper_results
+from kneas_method.bench import aggregate, backends, estimate, grid, paper_results
 from kneas_method.bench.cells import cell_dir, find_metrics, is_complete, run_cell
-from kneas_method.bench.grid import Cell
+from kneas_method.bench.grid import REFERENCE_METHODS, Cell
 from kneas_method.errors import KneasError
 
 # A stand-in for kneas-train: same arguments, same run-folder layout, metrics that depend on the cell.
@@ -53,17 +53,43 @@ def _calls(log: Path) -> list[dict]:
 # ---------------------------------------------------------------------------- grids
 
 
+CLASSICAL = ("fdk", "sart", "os-sart", "cgls", "asd-pocs")
+
+
+def test_reference_methods_are_the_classical_kneas_train_methods():
+    from kneas_method import registry
+    from kneas_method.classical.options import ALGORITHMS
+    from kneas_method.methods import ClassicalConfig
+
+    assert REFERENCE_METHODS == ALGORITHMS and set(REFERENCE_METHODS) == set(CLASSICAL)
+    specs = registry.methods()
+    assert all(isinstance(specs[m].config, ClassicalConfig) for m in REFERENCE_METHODS)
+    assert all(grid.is_reference(m) for m in CLASSICAL) and not any(grid.is_reference(m) for m in ("naf", "k-neas", "neas-1m"))
+    # classical methods have no materials and train no prior
+    assert set(CLASSICAL) <= set(grid.NO_MATERIALS) and set(CLASSICAL) <= set(estimate.PRIOR_METHODS_NO)
+    grid.check_methods(CLASSICAL)
+
+
 def test_table1_grid_matches_the_paper_layout():
     cells = grid.table1(["foot", "jaw"], grid.seeds_from_count(2), "tiny")
-    # per scene: NeAS 1M, 2M + K-NeAS 1M..4M = 6 configs x 2 seeds, + one FDK run
-    assert len(cells) == 2 * (6 * 2 + 1)
+    # per scene: NeAS 1M, 2M + K-NeAS 1M..4M = 6 configs x 2 seeds, + one run per classical reference
+    assert len(cells) == 2 * (6 * 2 + 5)
     assert len({c.id for c in cells}) == len(cells)
     foot = [c for c in cells if c.scene == "foot"]
-    assert sorted((c.method, c.k) for c in foot if c.seed == 0 and c.method != "fdk") == [
+    assert sorted((c.method, c.k) for c in foot if c.seed == 0 and c.method not in CLASSICAL) == [
         ("k-neas", 1), ("k-neas", 2), ("k-neas", 3), ("k-neas", 4), ("neas-1m", 1), ("neas-2m", 2)]
-    assert {c.seed for c in foot if c.method != "fdk"} == {0, 1}
-    fdk = [c for c in foot if c.method == "fdk"]
-    assert len(fdk) == 1 and fdk[0].k is None and fdk[0].seed == 0
+    assert {c.seed for c in foot if c.method not in CLASSICAL} == {0, 1}
+    refs = [c for c in foot if c.method in CLASSICAL]
+    assert sorted(c.method for c in refs) == sorted(CLASSICAL)  # each classical reference once per scene
+    assert all(c.k is None and c.seed == 0 and c.views is None for c in refs)
+    assert all("--num-materials" not in c.train_args("o") and c.train_args("o")[:3] == [c.method, "--scene", "foot"] for c in refs)
+    # the references can be chosen, or left out
+    assert not [c for c in grid.table1(["foot"], (0, 1), "tiny", references=()) if c.method in CLASSICAL]
+    only = grid.table1(["foot", "jaw"], (0, 1), "tiny", references=("cgls", "sart"))
+    assert sorted((c.scene, c.method) for c in only if c.method in CLASSICAL) == [
+        ("foot", "cgls"), ("foot", "sart"), ("jaw", "cgls"), ("jaw", "sart")]
+    with pytest.raises(KneasError, match="unknown reference method"):
+        grid.table1(["foot"], (0,), "tiny", references=("naf",))
 
     by = {(c.method, c.k, c.seed): c for c in foot}
     out = Path("/o/cells/x")
@@ -80,26 +106,38 @@ def test_table1_grid_matches_the_paper_layout():
 
 def test_views_and_ablation_grids():
     cells = grid.views_table(["chest"], (0, 1, 2), "cpu")
-    learned = [c for c in cells if c.method != "fdk"]
+    learned = [c for c in cells if c.method not in CLASSICAL]
     assert len(learned) == 4 * 2 * 3
     assert {c.views for c in learned} == {5, 10, 20, 50}
     assert {(c.method, c.k) for c in learned} == {("neas-2m", 2), ("k-neas", 2)}
-    assert sorted(c.views for c in cells if c.method == "fdk") == [5, 10, 20, 50]
+    for m in CLASSICAL:  # every reference once per view count, seed 0
+        refs = [c for c in cells if c.method == m]
+        assert sorted(c.views for c in refs) == [5, 10, 20, 50] and {c.seed for c in refs} == {0}
+    assert "--views" in [a for c in cells if c.method == "asd-pocs" for a in c.train_args("o")]
+    assert len(cells) == 4 * 2 * 3 + 4 * 5
+    assert grid.views_table(["chest"], (0,), "cpu", references=()) == [c for c in grid.views_table(["chest"], (0,), "cpu")
+                                                                        if c.method not in CLASSICAL]
     assert "--views" in learned[0].train_args("o") and "--num-materials" in [a for c in learned if c.method == "k-neas" for a in c.train_args("o")]
 
     ab = grid.ablation(["foot"], (0,), "cpu")
-    assert [c.method for c in ab] == ["kselector", "kselector-floater", "kselector-shared", "k-neas", "fdk"]
-    assert all(c.k == 2 for c in ab if c.method != "fdk")
-    assert all(c.train_args("o")[3:5] == ["--num-materials", "2"] for c in ab if c.method != "fdk")
+    assert [c.method for c in ab] == ["kselector", "kselector-floater", "kselector-shared", "k-neas", *CLASSICAL]
+    assert all(c.k == 2 for c in ab if c.method not in CLASSICAL)
+    assert all(c.train_args("o")[3:5] == ["--num-materials", "2"] for c in ab if c.method not in CLASSICAL)
+    assert all(c.k is None and c.seed == 0 for c in ab if c.method in CLASSICAL)
+    # a classical method given as a variant is a reference: one run, no K
+    ab = grid.ablation(["foot"], (0, 1), "cpu", methods=("k-neas", "sart"), references=())
+    assert [(c.method, c.k, c.seed) for c in ab] == [("k-neas", 2, 0), ("k-neas", 2, 1), ("sart", None, 0)]
 
 
 def test_generic_grid_and_validation():
-    cells = grid.grid(["foot"], ["k-neas", "neas-2m", "naf", "fdk"], (2, 3), (10, None), (0, 1), "tiny")
+    cells = grid.grid(["foot"], ["k-neas", "neas-2m", "naf", "fdk", "os-sart"], (2, 3), (10, None), (0, 1), "tiny")
     methods = [(c.method, c.k, c.views, c.seed) for c in cells]
     assert sum(m == "k-neas" for m, *_ in methods) == 2 * 2 * 2
     assert sum(m == "neas-2m" for m, *_ in methods) == 2 * 2  # K fixed at 2
-    assert all(k is None for m, k, *_ in methods if m in ("naf", "fdk"))
-    assert sum(m == "fdk" for m, *_ in methods) == 2  # once per view count, seed 0
+    assert all(k is None for m, k, *_ in methods if m in ("naf", "fdk", "os-sart"))
+    assert sum(m == "naf" for m, *_ in methods) == 2 * 2
+    for ref in ("fdk", "os-sart"):  # once per view count, seed 0
+        assert sorted((v or 0, seed) for m, _, v, seed in methods if m == ref) == [(0, 0), (10, 0)]
     with pytest.raises(KneasError, match="number of seeds"):
         grid.seeds_from_count(0)
     with pytest.raises(KneasError, match="unknown preset"):
@@ -141,7 +179,7 @@ def _m(p2, s2, p3, s3):
     return {"psnr2d": p2, "ssim2d": s2, "psnr3d": p3, "ssim3d": s3, "psnr3d_ls": p3 + 1}
 
 
-def test_table1_aggregation_mean_std_bold_paper_and_fdk(tmp_path):
+def test_table1_aggregation_mean_std_bold_paper_and_references(tmp_path):
     cells = grid.table1(["foot", "jaw"], (0, 1), "tiny", ks=(1, 2, 3))
     public = "public benchmark data/foot_50.pickle"
     fixtures = {
@@ -150,7 +188,9 @@ def test_table1_aggregation_mean_std_bold_paper_and_fdk(tmp_path):
         ("foot", "k-neas", 1): [_m(39.0, 0.95, 29.0, 0.70), _m(39.5, 0.95, 29.0, 0.70)],
         ("foot", "k-neas", 2): [_m(43.0, 0.93, 32.0, 0.81), _m(44.0, 0.93, 33.0, 0.81)],
         ("foot", "k-neas", 3): [_m(42.0, 0.94, 31.0, 0.81)],  # seed 1 failed
-        ("foot", "fdk", None): [_m(50.0, 0.99, 40.0, 0.99)],  # the reference is never bold, even when best
+        ("foot", "fdk", None): [_m(50.0, 0.99, 40.0, 0.99)],  # the references are never bold, even when best
+        ("foot", "sart", None): [_m(55.0, 0.98, 41.0, 0.98)],
+        ("foot", "cgls", None): [_m(45.0, 0.97, 35.0, 0.97)],  # os-sart and asd-pocs never ran: rows with "—"
         ("jaw", "neas-1m", 1): [_m(30.0, 0.8, 20.0, 0.7), _m(30.0, 0.8, 20.0, 0.7)],
     }
     for c in cells:
@@ -185,6 +225,15 @@ def test_table1_aggregation_mean_std_bold_paper_and_fdk(tmp_path):
     assert row3[4] == "42.000 (n=1/2)" and row3[5] == "42.800"
     fdk = [x.strip() for x in lines[("foot", "FDK (ref.)")].strip("|").split("|")]
     assert fdk[2] == "50.000" and "**" not in lines[("foot", "FDK (ref.)")]
+    sart = [x.strip() for x in lines[("foot", "SART (ref.)")].strip("|").split("|")]
+    assert sart[2] == "55.000" and sart[4] == "—" and "**" not in lines[("foot", "SART (ref.)")]
+    assert [x.strip() for x in lines[("foot", "CGLS (ref.)")].strip("|").split("|")][2] == "45.000"
+    assert [x.strip() for x in lines[("foot", "OS-SART (ref.)")].strip("|").split("|")][2] == "—"
+    # one row per classical reference, after the scene's K rows, in REFERENCE_METHODS order
+    configs = [key[1] for key in lines if key[0] == "foot"]
+    assert configs == ["1M", "2M", "3M", "FDK (ref.)", "SART (ref.)", "OS-SART (ref.)", "CGLS (ref.)", "ASD-POCS (ref.)"]
+    assert [key[1] for key in lines if key[0] == "jaw"][3:] == configs[3:]
+    assert "classical references FDK, SART, OS-SART, CGLS, ASD-POCS" in md
     # jaw is a built-in phantom: no paper numbers beside ours, and a note says why
     jaw1 = [x.strip() for x in lines[("jaw", "1M")].strip("|").split("|")]
     assert jaw1[2] == "**30.000 ± 0.000**" and jaw1[3] == "—"
@@ -199,7 +248,10 @@ def test_table1_aggregation_mean_std_bold_paper_and_fdk(tmp_path):
     assert float(foot1["psnr2d_neas_mean"]) == pytest.approx(41.0) and float(foot1["psnr2d_neas_std"]) == pytest.approx(2 ** 0.5)
     assert foot1["psnr2d_neas_n"] == "2" and foot1["psnr2d_kneas_paper"] == "42.717"
     assert float(foot1["psnr3d_ls_neas_mean"]) == pytest.approx(31.5)
-    assert next(r for r in rows if r["config"] == "FDK (ref.)")["reference"] == "1"
+    assert {r["config"]: r["reference"] for r in rows if r["scene"] == "foot"} == {
+        "1M": "0", "2M": "0", "3M": "0", "FDK (ref.)": "1", "SART (ref.)": "1", "OS-SART (ref.)": "1", "CGLS (ref.)": "1",
+        "ASD-POCS (ref.)": "1"}
+    assert float(next(r for r in rows if r["scene"] == "foot" and r["config"] == "SART (ref.)")["psnr2d_neas_mean"]) == pytest.approx(55.0)
     per_cell = list(csv.DictReader(paths[2].open()))
     assert len(per_cell) == len(cells)
     assert next(r for r in per_cell if r["cell_id"] == failed.id)["status"] == "failed"
@@ -208,7 +260,7 @@ def test_table1_aggregation_mean_std_bold_paper_and_fdk(tmp_path):
 def test_views_and_ablation_layouts(tmp_path):
     cells = grid.views_table(["chest"], (0,), "tiny", views=(5, 10))
     for c in cells:
-        base = {"neas-2m": 30.0, "k-neas": 31.0, "fdk": 20.0}[c.method] + c.views
+        base = {"neas-2m": 30.0, "k-neas": 31.0, "fdk": 20.0, "sart": 40.0, "os-sart": 41.0, "cgls": 42.0, "asd-pocs": 43.0}[c.method] + c.views
         _write_metrics(tmp_path, c, _m(base, 0.9, base - 10, 0.5), "public benchmark data/chest_50.pickle")
     _, _, paths = aggregate.write_tables(tmp_path, "views", cells)
     md = paths[0].read_text()
@@ -216,6 +268,12 @@ def test_views_and_ablation_layouts(tmp_path):
     parts = [x.strip() for x in row5.strip("|").split("|")]
     assert parts[2:6] == ["35.000", "30.473", "**36.000**", "30.813"]  # better model at this view count in bold
     assert any(line.startswith("| chest | 10 FDK (ref.) |") for line in md.splitlines())
+    # every classical reference at every view count; never bold even where it beats both models
+    for label, base in (("FDK", 20.0), ("SART", 40.0), ("OS-SART", 41.0), ("CGLS", 42.0), ("ASD-POCS", 43.0)):
+        for v in (5, 10):
+            assert f"| chest | {v} {label} (ref.) | {base + v:.3f} |" in md
+    assert "| chest | 5 ASD-POCS (ref.) | 48.000 | — | — | — |" in md
+    assert not [line for line in md.splitlines() if "(ref.)" in line and "**" in line]
 
     ab = grid.ablation(["foot"], (0,), "tiny")
     for i, c in enumerate(ab):
@@ -225,6 +283,24 @@ def test_views_and_ablation_layouts(tmp_path):
     assert "| foot | K-Selector + Floater Reg | kselector-floater | 2 | 41.000 | 43.115 |" in md
     assert "| foot | K-NeAS | k-neas | 2 | **43.000** | 43.245 |" in md
     assert "| foot | FDK (ref.) | fdk | — | 44.000 | — |" in md
+    for i, m in enumerate(CLASSICAL):  # ablation cells: the four variants, then the references in order
+        assert f"| foot | {m.upper()} (ref.) | {m} | — | {44.0 + i:.3f} | — |" in md
+    assert "**48.000**" not in md  # asd-pocs has the highest 2D PSNR, but bold stays with the learned models
+
+
+def test_grid_layout_marks_classical_methods_as_references(tmp_path):
+    cells = grid.grid(["foot"], ["k-neas", "naf", "cgls", "sart"], (2,), (None,), (0, 1), "tiny")
+    assert [(c.method, c.seed) for c in cells] == [("k-neas", 0), ("k-neas", 1), ("naf", 0), ("naf", 1), ("cgls", 0), ("sart", 0)]
+    for c in cells:
+        base = {"k-neas": 40.0, "naf": 38.0, "cgls": 50.0, "sart": 45.0}[c.method] + c.seed
+        _write_metrics(tmp_path, c, _m(base, 0.9, base - 10, 0.8), "built-in phantom foot")
+    _, _, paths = aggregate.write_tables(tmp_path, "grid", cells)
+    md = paths[0].read_text()
+    assert "| foot | k-neas | 2 | all | **40.500 ± 0.707** |" in md and "| foot | cgls | — | all | 50.000 |" in md
+    import csv
+
+    assert {r["method"]: r["reference"] for r in csv.DictReader(paths[1].open())} == {"k-neas": "0", "naf": "0", "cgls": "1", "sart": "1"}
+    assert "classical references SART, CGLS" in md
 
 
 # ---------------------------------------------------------------------------- running, resume, failures
@@ -236,7 +312,7 @@ def test_resume_skips_complete_cells_and_records_failures(tmp_path, fake_prefix,
     monkeypatch.setenv("FAKE_FAIL", "foot/k-neas/2/1")
     out = tmp_path / "bench"
     cells = grid.table1(["foot"], (0, 1), "tiny", ks=(1, 2))
-    assert len(cells) == 9
+    assert len(cells) == 4 * 2 + 5  # {neas-1m, neas-2m, k-neas 1M, 2M} x 2 seeds + 5 classical references
     # one cell is already complete from an earlier run: it must not be trained again
     _write_metrics(out, cells[0], _m(1, 1, 1, 1), "built-in")
     # a helper run's metrics (the NeAS-1M prior of an interrupted k-neas run) do not make a cell complete
@@ -247,7 +323,7 @@ def test_resume_skips_complete_cells_and_records_failures(tmp_path, fake_prefix,
     seen = []
     results = backends.LocalBackend(workers=1).run([c for c in cells if not is_complete(out, c)], out, fake_prefix,
                                                    on_result=lambda c, r: seen.append((c.id, r.status)))
-    assert len(_calls(log)) == 8 and len(seen) == 8
+    assert len(_calls(log)) == 12 and len(seen) == 12
     failed = [r for r in results if r.status == "failed"]
     assert [r.cell_id for r in failed] == ["foot__k-neas__K2__vall__s1__tiny"]
     record = json.loads((out / "cells" / failed[0].cell_id / "cell.json").read_text())
@@ -311,14 +387,45 @@ def test_cli_runs_a_table_then_trains_nothing(tmp_path, fake_prefix, monkeypatch
     with pytest.raises(SystemExit) as exc:
         cli.main(argv)
     assert exc.value.code == 0
-    assert len(_calls(log)) == 4 * 2 + 1
+    calls = _calls(log)
+    assert len(calls) == 4 * 2 + 5  # 4 variants x 2 seeds + each classical reference once
+    assert sorted(c["args"][0] for c in calls if c["args"][0] in CLASSICAL) == sorted(CLASSICAL)
+    assert all("--num-materials" not in c["args"] and c["args"][c["args"].index("--seed") + 1] == "0"
+               for c in calls if c["args"][0] in CLASSICAL)
     md = (out / "table3_ablation.md").read_text()
     assert "| foot | K-NeAS | k-neas | 2 | **42.700 ± 0.707** |" in md  # fake metrics: 42 + 0.1 K + seed
+    assert "| foot | FDK (ref.) | fdk | — | 30.000 |" in md and "| foot | OS-SART (ref.) | os-sart | — | 35.000 |" in md
     assert (out / "table3_ablation.csv").is_file()
     with pytest.raises(SystemExit) as exc:
         cli.main(argv)
-    assert exc.value.code == 0 and len(_calls(log)) == 9  # nothing trained again
-    assert "9 already complete, 0 to run" in capsys.readouterr().out
+    assert exc.value.code == 0 and len(_calls(log)) == 13  # nothing trained again
+    assert "13 already complete, 0 to run" in capsys.readouterr().out
+
+
+def test_cli_references_option(tmp_path, fake_prefix, monkeypatch):
+    from kneas_method.cli import bench as cli
+
+    def refs(argv):
+        return sorted({(c.method, c.views) for c in cli.expand(cli.parse_args(argv)) if c.method in CLASSICAL})
+
+    assert refs(["table1", "--scenes", "foot"]) == sorted((m, None) for m in CLASSICAL)  # default: all five
+    assert refs(["table1", "--scenes", "foot", "--references"]) == []  # empty: none
+    assert refs(["views", "--views", "5", "10", "--references", "sart", "cgls"]) == [("cgls", 5), ("cgls", 10), ("sart", 5), ("sart", 10)]
+    assert refs(["ablation", "--references"]) == []
+    assert refs(["grid", "--methods", "k-neas", "--references", "asd-pocs"]) == [("asd-pocs", None)]
+    assert refs(["grid", "--methods", "k-neas", "cgls", "--references"]) == [("cgls", None)]  # a classical method asked for by name
+    assert refs(["grid", "--methods", "k-neas"]) == sorted((m, None) for m in CLASSICAL)
+
+    # a run without references trains none and the table has no (ref.) rows
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    monkeypatch.setattr(cli, "TRAIN_PREFIX", fake_prefix)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["ablation", "--preset", "tiny", "--seeds", "1", "--references", "--output-dir", str(tmp_path / "b")])
+    assert exc.value.code == 0
+    assert [c["args"][0] for c in _calls(log)] == ["kselector", "kselector-floater", "kselector-shared", "k-neas"]
+    md = (tmp_path / "b" / "table3_ablation.md").read_text()
+    assert "(ref.)" not in md and "classical references" not in md
 
 
 def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
@@ -329,10 +436,13 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
         cli.main(["views", "--preset", "tiny", "--seeds", "1", "--dry-run", "--output-dir", str(tmp_path / "o")])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    assert "12 of 12 cells to run" in out and "steps x 0.04 s (tiny, cpu)" in out
+    # 4 view counts x {neas-2m, k-neas} + 4 view counts x 5 classical references
+    assert "28 of 28 cells to run" in out and "steps x 0.04 s (tiny, cpu)" in out and "classical asd-pocs" in out
     assert not (tmp_path / "o").exists()  # a dry run creates nothing
     for argv, msg in ((["table1", "--seeds", "0"], "number of seeds"),
                       (["grid", "--methods", "nope"], "unknown method"),
+                      (["table1", "--references", "naf"], "--references"),
+                      (["table1", "--no-fdk"], "unknown option --no-fdk"),
                       (["table1", "--train-args=--seed 3"], "must not contain --seed"),
                       (["table1", "--workers", "2", "--backend", "ray"], "--workers is for the local backend")):
         with pytest.raises(SystemExit) as exc:

@@ -16,9 +16,10 @@ Layouts (``kneas-bench``):
 - ``ablation`` (Table 3): one row per ablation method; bold = best per scene.
 - ``grid``: one row per (scene, method, K, views); bold = best per scene.
 
-Every table has an FDK row per scene (and per view count) as the classical
-reference: its values sit in the first model column of each metric, and it is
-never bold. When a scene's runs used the public benchmark (``scene_source`` in
+Every table has one row per classical reference method that was run
+(:data:`~.grid.REFERENCE_METHODS`: "FDK (ref.)", "SART (ref.)", "OS-SART (ref.)",
+"CGLS (ref.)", "ASD-POCS (ref.)") per scene (and per view count): its values
+sit in the first model column of each metric, and it is never bold. When a scene's runs used the public benchmark (``scene_source`` in
 ``metrics.json`` starts with "public benchmark"), the paper's published value
 stands beside ours in a ``(paper)`` column; for built-in phantoms the paper
 column stays empty, because the numbers are not comparable.
@@ -37,7 +38,7 @@ from typing import Any, Optional, Sequence
 from ..engine.run_dir import read_json
 from . import paper_results as paper
 from .cells import cell_dir, find_metrics, read_cell_record
-from .grid import Cell
+from .grid import REFERENCE_METHODS, Cell, is_reference
 
 METRICS = paper.METRICS  # shown in the tables
 CSV_EXTRA_METRICS = ("psnr3d_ls",)  # also in the CSV files
@@ -113,7 +114,7 @@ class Row:
     bold_scope: str  # rows with the same scope compete for bold
     entries: dict[tuple[str, str], Optional[tuple]]  # (metric, model column) -> group key
     paper: dict[tuple[str, str], Optional[float]] = field(default_factory=dict)
-    reference: bool = False  # the FDK row
+    reference: bool = False  # a classical reference row (never bold)
     scene: str = ""
 
 
@@ -266,11 +267,29 @@ def _source_note(groups: dict[tuple, Group], scenes: Sequence[str], with_paper: 
     return notes
 
 
+def reference_label(method: str) -> str:
+    """Display name of a classical reference row: ``fdk`` -> "FDK (ref.)", ``os-sart`` -> "OS-SART (ref.)"."""
+    return f"{method.upper()} (ref.)"
+
+
+def _references(cells: Sequence[Cell]) -> list[str]:
+    """The classical reference methods among ``cells``, in :data:`REFERENCE_METHODS` order."""
+    present = {c.method for c in cells}
+    return [m for m in REFERENCE_METHODS if m in present]
+
+
 def _common_notes(cells: Sequence[Cell]) -> list[str]:
-    seeds = sorted({c.seed for c in cells if c.method != "fdk"})
+    seeds = sorted({c.seed for c in cells if not is_reference(c.method)})
     presets = sorted({c.preset for c in cells})
-    return [f"mean ± sample std over seeds {', '.join(map(str, seeds))}; preset {', '.join(presets)}; bold = best of our learned models "
-            "(FDK excluded); FDK row = classical reference (one deterministic run; its values are in the first column of each metric)."]
+    note = f"mean ± sample std over seeds {', '.join(map(str, seeds))}; preset {', '.join(presets)}; bold = best of our learned models"
+    refs = _references(cells)
+    if refs:
+        labels = ", ".join(m.upper() for m in refs)
+        note += (f" (classical references excluded); (ref.) rows = classical references {labels} (one deterministic run each; "
+                 "their values are in the first column of each metric).")
+    else:
+        note += "."
+    return [note]
 
 
 def table1(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
@@ -291,9 +310,10 @@ def table1(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
                     pap[(metric, "NeAS")] = paper.table1_value(s, f"neas-{k}m", k, metric) if k in (1, 2) else None
                     pap[(metric, "K-NeAS")] = paper.table1_value(s, "k-neas", k, metric)
             rows.append(Row([s, f"{k}M"], s, entries, pap, scene=s))
-        fdk = (s, "fdk", None, views)
-        if fdk in groups:
-            rows.append(Row([s, "FDK (ref.)"], s, {(m, "NeAS"): fdk for m in METRICS}, reference=True, scene=s))
+        for ref in _references(cells):
+            key = (s, ref, None, views)
+            if key in groups:
+                rows.append(Row([s, reference_label(ref)], s, {(m, "NeAS"): key for m in METRICS}, reference=True, scene=s))
     with_paper = bool(public)
     title = "Table 1: NeAS vs K-NeAS across scenes and material counts" + (f" ({views} views)" if views else "")
     return Table("table1", title, ["Scene", "Config"], models, rows,
@@ -317,9 +337,11 @@ def views_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
                         pap[(metric, model)] = paper.table2_value(s, method, key[2], v, metric)
             rows.append(Row([s, str(v)], f"{s}/{v}", entries, pap, scene=s))
         for v in views:
-            fdk = (s, "fdk", None, v)
-            if fdk in groups:
-                rows.append(Row([s, f"{v} FDK (ref.)"], f"{s}/{v}", {(m, "NeAS"): fdk for m in METRICS}, reference=True, scene=s))
+            for ref in _references(cells):
+                key = (s, ref, None, v)
+                if key in groups:
+                    rows.append(Row([s, f"{v} {reference_label(ref)}"], f"{s}/{v}", {(m, "NeAS"): key for m in METRICS},
+                                    reference=True, scene=s))
     notes = _common_notes(cells)
     notes[0] = notes[0].replace("bold = best of our learned models", "bold = the better of NeAS / K-NeAS at each view count")
     return Table("table2_views", f"Table 2: sparse views, NeAS (neas-2m) vs K-NeAS (k-neas, K = {k})", ["Scene", "# Views"], models, rows,
@@ -328,7 +350,7 @@ def views_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
 
 def ablation_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
     public = _public_scenes(groups)
-    methods = list(dict.fromkeys(c.method for c in cells if c.method != "fdk"))
+    methods = list(dict.fromkeys(c.method for c in cells if not is_reference(c.method)))
     rows = []
     for s in _scenes(cells):
         for method in methods:
@@ -338,8 +360,9 @@ def ablation_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
                 entries = {(m, ""): key for m in METRICS}
                 pap = {(m, ""): paper.table3_value(s, method, key[2], m) for m in METRICS} if s in public and key[3] in (None, 50) else {}
                 rows.append(Row([s, label, method, str(key[2])], s, entries, pap, scene=s))
-        for key in [key for key in groups if key[0] == s and key[1] == "fdk"]:
-            rows.append(Row([s, "FDK (ref.)", "fdk", "—"], s, {(m, ""): key for m in METRICS}, reference=True, scene=s))
+        for ref in _references(cells):
+            for key in [key for key in groups if key[0] == s and key[1] == ref]:
+                rows.append(Row([s, reference_label(ref), ref, "—"], s, {(m, ""): key for m in METRICS}, reference=True, scene=s))
     return Table("table3_ablation", "Table 3: component ablation", ["Scene", "Variant", "Method", "K"], [""], rows,
                  _common_notes(cells) + _source_note(groups, _scenes(cells), bool(public)), bool(public))
 
@@ -353,7 +376,7 @@ def grid_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
             entries = {(m, ""): key for m in METRICS}
             pap = {(m, ""): paper.paper_value(s, method, k, v, m) for m in METRICS} if s in public else {}
             rows.append(Row([s, method, "—" if k is None else str(k), "all" if v is None else str(v)], s, entries, pap,
-                            reference=method == "fdk", scene=s))
+                            reference=is_reference(method), scene=s))
     return Table("grid", "Grid results", ["Scene", "Method", "K", "Views"], [""], rows,
                  _common_notes(cells) + _source_note(groups, _scenes(cells), bool(public)), bool(public))
 

@@ -9,11 +9,17 @@ How a cell's cost is estimated (printed with the dry run):
    device kind) x training steps + a fixed per-run overhead. Training steps =
    views x (epochs + prior epochs), one step per training projection per epoch
    (SPEC §3); the prior single-material model (SPEC §4) is trained only by
-   methods with automatic bounds (neas-2m, kselector*, k-neas), not by neas-1m
-   or naf, and only when the preset fits the bounds on a prior (``paper``,
-   ``tiny``; the ``cpu`` preset fits them on FDK). Epochs come from the preset
-   (``presets.TABLE``); extra ``--trainer.epochs`` / ``--trainer.prior-epochs``
-   arguments are honoured. FDK costs only the overhead.
+   methods with automatic bounds (neas-2m, kselector*, k-neas), not by neas-1m,
+   naf or the classical references, and only when the preset fits the bounds on
+   a prior (``paper``, ``tiny``; the ``cpu`` preset fits them on FDK). Epochs
+   come from the preset (``presets.TABLE``); extra ``--trainer.epochs`` /
+   ``--trainer.prior-epochs`` arguments are honoured.
+3. The classical references (``grid.REFERENCE_METHODS``: fdk, sart, os-sart,
+   cgls, asd-pocs) train nothing: seconds per iteration at 50 views x
+   iterations x views / 50 + a fixed per-run overhead (start-up, evaluation),
+   the same for every preset and device. Iterations are the algorithm's default
+   (``classical.reconstruct.DEFAULT_ITERATIONS``) unless ``--reconstruction.iterations``
+   is among the extra arguments; FDK counts as one "iteration".
 
 Where the figures come from (torch 2.13 CPU, 2 cores shared with other work,
 so pessimistic): ``tiny`` from the first real ``kneas-bench table1 --preset
@@ -23,7 +29,13 @@ tiny`` cells (``train_time_s / steps`` = 0.038 s per step, evaluation and start-
 scene at load ~3.5: paper 13 s (10.6-15.8 s); ``cpu`` from a quiet
 ``kneas-train k-neas --scene foot`` (6.3 steps/s; FDK + warm start +
 evaluation + start-up ~2.7 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
-the estimate says so; a first completed cell then calibrates rule 1.
+the estimate says so; a first completed cell then calibrates rule 1. Classical
+references (CPU, built-in foot, 50 views, 2 shared cores): ``kneas-train fdk``
+23 s wall (reconstruction 4 s, evaluation 19 s) and ``kneas-train sart`` 130 s
+(5 iterations in 125 s, evaluation 5 s) at load ~2-4; os-sart, cgls and asd-pocs
+from 2- and 3-iteration runs of ``benchmarks/classical.py`` at load ~5, scaled
+by their time relative to a 2-iteration sart run of the same session (rough;
+on a GPU they are much faster).
 """
 
 from __future__ import annotations
@@ -34,7 +46,7 @@ from typing import Optional, Sequence
 
 from .. import presets
 from .cells import cell_dir, find_metrics
-from .grid import Cell
+from .grid import REFERENCE_METHODS, Cell, is_reference
 
 DEFAULT_VIEWS = 50
 
@@ -50,8 +62,12 @@ SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
 # fixed per-run overhead in seconds (interpreter + torch import, scene load or
 # simulation, evaluation on the held-out views, volume metrics, figures), by preset.
 OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 165.0, "paper": 300.0}
-FDK_S = 10.0
-PRIOR_METHODS_NO = ("neas-1m", "naf", "fdk")
+# classical references: seconds per iteration at 50 views (CPU; fdk: the whole filtered back-projection)
+# and a fixed per-run overhead (start-up, evaluation on the held-out views).
+CLASSICAL_S_PER_ITERATION: dict[str, float] = {"fdk": 4.0, "sart": 25.0, "os-sart": 15.0, "cgls": 4.7, "asd-pocs": 25.5}
+CLASSICAL_OVERHEAD_S = 25.0
+# methods that train no NeAS-1M prior (the classical references train nothing)
+PRIOR_METHODS_NO = ("neas-1m", "naf", *REFERENCE_METHODS)
 
 
 def _extra_int(extra: Sequence[str], *names: str) -> Optional[int]:
@@ -79,6 +95,29 @@ def training_steps(cell: Cell, preset: str) -> int:
     views = cell.views or DEFAULT_VIEWS
     uses_prior = cell.method not in PRIOR_METHODS_NO and presets.TABLE[preset]["run"]["bounds_volume"] == "prior"
     return views * (epochs + (prior if uses_prior else 0))
+
+
+def classical_iterations(cell: Cell) -> int:
+    """Iterations of a classical reference cell: ``--reconstruction.iterations`` or the algorithm's default (fdk: 1)."""
+    if cell.method == "fdk":
+        return 1
+    from ..classical.reconstruct import DEFAULT_ITERATIONS
+
+    given = _extra_int(cell.extra, "--reconstruction.iterations")
+    return given or DEFAULT_ITERATIONS.get(cell.method, 1)
+
+
+def classical_estimate(cell: Cell) -> tuple[Optional[float], str]:
+    """``(seconds, how)`` for a classical reference cell (rule 3 of the module docstring)."""
+    per_iteration = CLASSICAL_S_PER_ITERATION.get(cell.method)
+    if per_iteration is None:
+        return None, f"no timing recorded for the classical method {cell.method}"
+    views = cell.views or DEFAULT_VIEWS
+    iterations = classical_iterations(cell)
+    seconds = per_iteration * iterations * views / DEFAULT_VIEWS + CLASSICAL_OVERHEAD_S
+    what = "reconstruction" if cell.method == "fdk" else f"{iterations} iterations x {per_iteration:g} s"
+    scaled = f" x {views}/{DEFAULT_VIEWS} views" if views != DEFAULT_VIEWS else ""
+    return seconds, f"classical {cell.method}: {what} (CPU, {DEFAULT_VIEWS} views){scaled} + {CLASSICAL_OVERHEAD_S:g} s"
 
 
 def device_kind() -> str:
@@ -117,8 +156,8 @@ def estimate(cell: Cell, kind: Optional[str] = None, measured: Optional[dict[tup
         preset = "paper" if kind == "gpu" else "cpu"
     if preset not in presets.TABLE:
         return None, f"unknown preset {preset}"
-    if cell.method == "fdk":
-        return FDK_S, "fixed FDK cost"
+    if is_reference(cell.method):
+        return classical_estimate(cell)
     steps = training_steps(cell, preset)
     sps = SECONDS_PER_STEP.get((preset, kind))
     if sps is None:

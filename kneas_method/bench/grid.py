@@ -16,8 +16,13 @@ Grids (``kneas-bench``):
 - ``ablation``: scenes (foot) x {kselector, kselector-floater, kselector-shared, k-neas}, K = 2, x seeds (Table 3).
 - ``grid``: any scenes x methods x K x views x seeds.
 
-Every grid also has one ``fdk`` cell per scene (and per view count): FDK is
-deterministic, so it runs once (seed 0) as the classical reference row.
+Every table grid (``table1``, ``views``, ``ablation``) also has one cell per
+scene (and per view count) for each classical reference method
+(:data:`REFERENCE_METHODS`: ``fdk``, ``sart``, ``os-sart``, ``cgls``,
+``asd-pocs``; ``references`` picks which, default all): they are
+deterministic, so each runs once (seed 0), without ``--num-materials``, as a
+classical reference row. In ``grid`` they are ordinary methods that run once
+(``kneas-bench grid`` adds its ``--references`` to ``--methods``).
 """
 
 from __future__ import annotations
@@ -29,11 +34,15 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
+from ..classical.options import ALGORITHMS
 from ..errors import ConfigError
 
+# The classical reference methods: the classical kneas-train methods (ClassicalConfig
+# specs). No training, no materials, deterministic: one run (seed 0) per scene and view count.
+REFERENCE_METHODS: tuple[str, ...] = ALGORITHMS
 # Methods whose material count is fixed (no --num-materials passed) or absent.
 FIXED_K = {"neas-1m": 1, "neas-2m": 2}
-NO_MATERIALS = ("fdk", "naf")
+NO_MATERIALS = (*REFERENCE_METHODS, "naf")
 TABLE1_K = (1, 2, 3, 4)
 VIEWS = (5, 10, 20, 50)
 ABLATION_METHODS = ("kselector", "kselector-floater", "kselector-shared", "k-neas")
@@ -59,8 +68,8 @@ class Cell:
 
     Attributes:
         scene: built-in scene name or path to a NAF pickle.
-        method: registered kneas-train method (``fdk`` included).
-        k: number of materials (None for methods without materials: fdk, naf).
+        method: registered kneas-train method (the classical references included).
+        k: number of materials (None for methods without materials: the classical references, naf).
         views: training views kept (None = all of the scene's, 50 for the benchmarks).
         seed: training seed.
         preset: kneas-train preset (``tiny``, ``cpu``, ``paper``, ``auto``).
@@ -126,8 +135,26 @@ def _check_common(scenes: Sequence[str], preset: str) -> None:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
 
 
-def _fdk_cells(scenes: Iterable[str], views: Iterable[Optional[int]], preset: str, extra: tuple[str, ...]) -> list[Cell]:
-    return [Cell(s, "fdk", None, v, 0, preset, extra) for s in scenes for v in views]
+def is_reference(method: str) -> bool:
+    """True for a classical reference method (:data:`REFERENCE_METHODS`)."""
+    return method in REFERENCE_METHODS
+
+
+def check_references(references: Iterable[str]) -> tuple[str, ...]:
+    """The chosen reference methods, each once, in the order given; unknown names are an error."""
+    references = tuple(dict.fromkeys(references))
+    unknown = [m for m in references if not is_reference(m)]
+    if unknown:
+        raise ConfigError(f"unknown reference method(s) {', '.join(unknown)}; the classical references are "
+                          f"{', '.join(REFERENCE_METHODS)}")
+    return references
+
+
+def _reference_cells(scenes: Iterable[str], views: Iterable[Optional[int]], references: Sequence[str], preset: str,
+                     extra: tuple[str, ...]) -> list[Cell]:
+    """One cell per scene, view count and reference method, seed 0 (deterministic), no materials."""
+    references = check_references(references)
+    return [Cell(s, m, None, v, 0, preset, extra) for s in scenes for v in views for m in references]
 
 
 def _dedupe(cells: Iterable[Cell]) -> list[Cell]:
@@ -140,8 +167,10 @@ def _dedupe(cells: Iterable[Cell]) -> list[Cell]:
 
 
 def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
-           ks: Sequence[int] = TABLE1_K, views: Optional[int] = None, fdk: bool = True, extra: Sequence[str] = ()) -> list[Cell]:
-    """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``)."""
+           ks: Sequence[int] = TABLE1_K, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
+           extra: Sequence[str] = ()) -> list[Cell]:
+    """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``),
+    plus one cell per classical reference in ``references`` (empty: none)."""
     _check_common(scenes, preset)
     extra = tuple(extra)
     cells = []
@@ -153,32 +182,32 @@ def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: S
                 if k in (1, 2):
                     cells.append(Cell(s, f"neas-{k}m", k, views, seed, preset, extra))
                 cells.append(Cell(s, "k-neas", k, views, seed, preset, extra))
-    if fdk:
-        cells += _fdk_cells(scenes, [views], preset, extra)
+    cells += _reference_cells(scenes, [views], references, preset, extra)
     return _dedupe(cells)
 
 
 def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
-                views: Sequence[int] = VIEWS, k: int = 2, fdk: bool = True, extra: Sequence[str] = ()) -> list[Cell]:
-    """Table 2: views x {neas-2m, k-neas with K = 2} per scene."""
+                views: Sequence[int] = VIEWS, k: int = 2, references: Sequence[str] = REFERENCE_METHODS,
+                extra: Sequence[str] = ()) -> list[Cell]:
+    """Table 2: views x {neas-2m, k-neas with K = 2} per scene, plus each classical reference per scene and view count."""
     _check_common(scenes, preset)
     if any(v < 1 for v in views):
         raise ConfigError(f"view counts must be >= 1, got {list(views)}")
     extra = tuple(extra)
     cells = [Cell(s, m, k, v, seed, preset, extra) for s in scenes for v in views for m in ("neas-2m", "k-neas") for seed in seeds]
-    if fdk:
-        cells += _fdk_cells(scenes, views, preset, extra)
+    cells += _reference_cells(scenes, views, references, preset, extra)
     return _dedupe(cells)
 
 
 def ablation(scenes: Sequence[str] = ("foot",), seeds: Sequence[int] = (0,), preset: str = "auto", k: int = 2,
-             methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, fdk: bool = True, extra: Sequence[str] = ()) -> list[Cell]:
-    """Table 3: the four-way ablation with K = 2."""
+             methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
+             extra: Sequence[str] = ()) -> list[Cell]:
+    """Table 3: the four-way ablation with K = 2, plus one cell per classical reference and scene."""
     _check_common(scenes, preset)
     extra = tuple(extra)
-    cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods for seed in seeds]
-    if fdk:
-        cells += _fdk_cells(scenes, [views], preset, extra)
+    # a classical method among ``methods`` is a reference (one run, no K), not an ablation variant
+    cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods if not is_reference(m) for seed in seeds]
+    cells += _reference_cells(scenes, [views], [*references, *filter(is_reference, methods)], preset, extra)
     return _dedupe(cells)
 
 
@@ -186,8 +215,9 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
          seeds: Sequence[int] = (0,), preset: str = "auto", extra: Sequence[str] = ()) -> list[Cell]:
     """Any scenes x methods x K x views x seeds.
 
-    K is ignored for fdk/naf (and fixed to 1 / 2 for neas-1m / neas-2m); ``None``
-    in ``ks`` means the method's default K. Methods that need no seed (fdk) run once.
+    K is ignored for the classical references and naf (and fixed to 1 / 2 for neas-1m /
+    neas-2m); ``None`` in ``ks`` means the method's default K. The classical references
+    (:data:`REFERENCE_METHODS`) are deterministic and run once (the first seed).
     """
     _check_common(scenes, preset)
     if not methods:
@@ -204,16 +234,16 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
                 else:
                     mk = list(ks)
                 for k in mk:
-                    for seed in (seeds[:1] if m == "fdk" else seeds):
+                    for seed in (seeds[:1] if is_reference(m) else seeds):
                         cells.append(Cell(s, m, k, v, seed, preset, extra))
     return _dedupe(cells)
 
 
 def check_methods(methods: Iterable[str]) -> None:
-    """Every method must be a registered kneas-train method (or ``fdk``)."""
+    """Every method must be a registered kneas-train method (the classical references are)."""
     from .. import registry
 
-    known = set(registry.methods()) | {"fdk"}
+    known = set(registry.methods()) | set(REFERENCE_METHODS)
     unknown = [m for m in methods if m not in known]
     if unknown:
         raise ConfigError(f"unknown method(s) {', '.join(unknown)}; available: {', '.join(sorted(known))}")

@@ -5,8 +5,9 @@ Each cell of a grid (scene x method x K x views x seed) is an ordinary
 a ``metrics.json`` are skipped, so rerunning the same command continues where
 the last one stopped (and trains nothing when all are done). The tables go to
 ``OUTPUT_DIR/<table>.md`` and ``.csv`` (mean ± std over seeds, best per scene
-in bold, FDK as the classical reference row, the paper's numbers beside ours
-for public-benchmark scenes).
+in bold, one row per classical reference (FDK, SART, OS-SART, CGLS, ASD-POCS;
+``--references`` picks which), the paper's numbers beside ours for
+public-benchmark scenes).
 
 Examples::
 
@@ -15,6 +16,8 @@ Examples::
     kneas-bench views --seeds 3 --backend local --workers 4       # 4 GPUs: one run per GPU
     kneas-bench ablation --backend ray --address auto             # on a running Ray cluster
     kneas-bench grid --scenes foot --methods k-neas naf --num-materials 2 3 --views 10 50 --seeds 2
+    kneas-bench table1 --references fdk sart                      # only these classical reference rows
+    kneas-bench table1 --references                               # no classical reference rows
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional, Sequence
 
+from ..bench.grid import REFERENCE_METHODS
+from ..classical.options import Algorithm
 from ..errors import ConfigError
 from .common import console, run_cli
 
@@ -35,7 +40,7 @@ class _Common:
     """Options shared by every table."""
 
     seeds: int = 3
-    """number of seeds: 0 .. N-1 (fdk runs once)"""
+    """number of seeds: 0 .. N-1 (the classical references run once)"""
     preset: str = "auto"
     """kneas-train preset: auto (paper with a GPU, else cpu), paper, cpu, tiny"""
     output_dir: str = "outputs/bench"
@@ -50,8 +55,8 @@ class _Common:
     """ray backend: CPUs each run asks for (on GPU clusters each run also asks for one GPU)"""
     dry_run: bool = False
     """list the cells with an estimated cost each; run nothing"""
-    fdk: bool = True
-    """add the FDK reference row (one run per scene and view count)"""
+    references: tuple[Algorithm, ...] = REFERENCE_METHODS
+    """classical reference methods to add: one deterministic run (seed 0) each per scene and view count, a '(ref.)' row that is never bold; --references with no name adds none"""
     train_args: str = ""
     """extra kneas-train arguments for every cell, as one string with =: --train-args="--trainer.epochs 5" """
 
@@ -101,9 +106,9 @@ class Grid(_Common):
     scenes: tuple[str, ...] = ("foot",)
     """built-in scene names or NAF pickle paths"""
     methods: tuple[str, ...] = ("k-neas",)
-    """registered kneas-train methods (fdk included)"""
+    """registered kneas-train methods (classical ones included; --references are added to them)"""
     num_materials: tuple[int, ...] = ()
-    """material counts (empty: each method's default; ignored by fdk/naf, fixed for neas-1m/neas-2m)"""
+    """material counts (empty: each method's default; ignored by the classical methods and naf, fixed for neas-1m/neas-2m)"""
     views: tuple[int, ...] = ()
     """training view counts (empty: all views)"""
 
@@ -136,13 +141,14 @@ def expand(args: _Common) -> list:
         if any(a == bad or a.startswith(bad + "=") for a in extra):
             raise ConfigError(f"--train-args must not contain {bad}: kneas-bench sets it per cell; use the kneas-bench option instead")
     if isinstance(args, Table1):
-        cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.fdk, extra)
+        cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.references, extra)
     elif isinstance(args, Views):
-        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.fdk, extra)
+        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra)
     elif isinstance(args, Ablation):
-        cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.fdk, extra)
+        cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.references, extra)
     else:
-        methods = list(args.methods) + (["fdk"] if args.fdk and "fdk" not in args.methods and args.methods else [])
+        references = grid.check_references(args.references)
+        methods = list(args.methods) + ([m for m in references if m not in args.methods] if args.methods else [])
         cells = grid.grid(args.scenes, methods, args.num_materials or (None,), args.views or (None,), seeds, args.preset, extra)
     grid.check_methods({c.method for c in cells})
     return cells
