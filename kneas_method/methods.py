@@ -74,7 +74,7 @@ class TrainerConfig:
             method (``fdk``): before projection training, fit the model to the run's
             classical reconstruction at the voxel centres (``Trainer.warm_start``), an
             option beside the paper's procedure (SPEC §4). None = the preset's
-            (paper: none; cpu: fdk).
+            (paper: none; cpu: asd-pocs).
         warm_start_steps: Adam steps of the warm start (None = the preset's).
         warm_start_points: voxel centres per warm-start step.
         warm_start_occupancy: weight of the warm start's per-material occupancy
@@ -162,7 +162,7 @@ class TrainConfig(RunConfig):
         bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
             (the paper: a trained NeAS-1M model, SPEC §4) or a classical reconstruction
             of the training views (``fdk``, ``sart``, ``asd-pocs``, ...: no prior training;
-            an option beside the paper's procedure). None = the preset's (paper: prior; cpu: fdk).
+            an option beside the paper's procedure). None = the preset's (paper: prior; cpu: asd-pocs).
         reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
             preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
         reconstruction: settings of the classical reconstruction used for the bounds

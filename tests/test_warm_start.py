@@ -62,7 +62,7 @@ def test_warm_start_is_deterministic(small_scene, tmp_path):
 def test_presets_fill_and_check_the_options():
     cpu = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu"))
     paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
-    assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("fdk", "fdk") and cpu.trainer.warm_start_steps > 0
+    assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("asd-pocs", "asd-pocs") and cpu.trainer.warm_start_steps > 0
     assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
     assert len(presets.procedure_notes(cpu)) == 2 and presets.procedure_notes(paper) == []
     with pytest.raises(ConfigError, match="warm_start"):

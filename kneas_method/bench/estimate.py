@@ -11,7 +11,7 @@ How a cell's cost is estimated (printed with the dry run):
    (SPEC §3); the prior single-material model (SPEC §4) is trained only by
    methods with automatic bounds (neas-2m, kselector*, k-neas), not by neas-1m,
    naf or the classical references, and only when the preset fits the bounds on
-   a prior (``paper``, ``tiny``; the ``cpu`` preset fits them on FDK). Epochs
+   a prior (``paper``, ``tiny``; the ``cpu`` preset fits them on ASD-POCS). Epochs
    come from the preset (``presets.TABLE``); extra ``--trainer.epochs`` /
    ``--trainer.prior-epochs`` arguments are honoured.
 3. The classical references (``grid.REFERENCE_METHODS``: fdk, sart, os-sart,
