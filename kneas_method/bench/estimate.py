@@ -30,12 +30,10 @@ scene at load ~3.5: paper 13 s (10.6-15.8 s); ``cpu`` from a quiet
 ``kneas-train k-neas --scene foot`` (6.3 steps/s; FDK + warm start +
 evaluation + start-up ~2.7 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
 the estimate says so; a first completed cell then calibrates rule 1. Classical
-references (CPU, built-in foot, 50 views, 2 shared cores): ``kneas-train fdk``
-23 s wall (reconstruction 4 s, evaluation 19 s) and ``kneas-train sart`` 130 s
-(5 iterations in 125 s, evaluation 5 s) at load ~2-4; os-sart, cgls and asd-pocs
-from 2- and 3-iteration runs of ``benchmarks/classical.py`` at load ~5, scaled
-by their time relative to a 2-iteration sart run of the same session (rough;
-on a GPU they are much faster).
+references (CPU, built-in foot, 50 views, 2 cores, quiet; ``python benchmarks/classical.py
+--scenes foot,jaw,chest,abdomen --dice``): fdk 0.9 s, sart 6.4 s (5 iterations), os-sart
+9.6 s (10), cgls 26.1 s (30), asd-pocs 13.8 s (10); the overhead (start-up, simulation cache
+read, evaluation of 50 held-out views, figures) ~25 s.
 """
 
 from __future__ import annotations
@@ -64,7 +62,7 @@ SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
 OVERHEAD_S: dict[str, float] = {"tiny": 60.0, "cpu": 165.0, "paper": 300.0}
 # classical references: seconds per iteration at 50 views (CPU; fdk: the whole filtered back-projection)
 # and a fixed per-run overhead (start-up, evaluation on the held-out views).
-CLASSICAL_S_PER_ITERATION: dict[str, float] = {"fdk": 4.0, "sart": 25.0, "os-sart": 15.0, "cgls": 4.7, "asd-pocs": 25.5}
+CLASSICAL_S_PER_ITERATION: dict[str, float] = {"fdk": 1.0, "sart": 1.3, "os-sart": 1.0, "cgls": 0.9, "asd-pocs": 1.4}
 CLASSICAL_OVERHEAD_S = 25.0
 # methods that train no NeAS-1M prior (the classical references train nothing)
 PRIOR_METHODS_NO = ("neas-1m", "naf", *REFERENCE_METHODS)
