@@ -22,7 +22,7 @@ from kneas_method.data.simulate import SimulationConfig, simulate_phantom
 from kneas_method.data.naf import scene_to_dict
 from kneas_method.errors import SceneError
 
-FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+FUZZ = settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                          HealthCheck.too_slow])
 MARKER = "KNEAS_FUZZ_PWNED"
 
@@ -106,7 +106,7 @@ def _edit_views(views: dict, edit: str) -> dict:
     elif edit == "empty":
         v = {"angles": np.zeros(0), "projections": np.zeros((0,) + p.shape[1:], np.float32)}
     elif edit == "2d":
-        v = {"angles": v["angles"][:1], "projections": p[0]}
+        v = {"angles": v["angles"][:1], "projections": p[0] if len(p) else np.zeros(np.shape(p)[1:], np.float32)}
     return v
 
 
@@ -237,7 +237,7 @@ def inspect_cli(path, capsys):
     return exc.value.code, out.out, out.err
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_kneas_data_inspect_on_damaged_pickles(valid_bytes, base_dict, fuzz_dir, capsys, data):
     if data.draw(st.booleans(), label="bytes?"):
@@ -306,7 +306,7 @@ def check_dry_run(path, capsys):
         assert err.strip().startswith("error:"), err
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_mutated_config_files_dry_run(base_config, fuzz_dir, capsys, data):
     cfg = copy.deepcopy(base_config)
@@ -337,7 +337,7 @@ def test_mutated_config_files_dry_run(base_config, fuzz_dir, capsys, data):
     check_dry_run(path, capsys)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(blob=st.one_of(JSON_VALUES.map(json.dumps), st.text(max_size=40), st.binary(max_size=40)))
 def test_random_config_files_dry_run(fuzz_dir, capsys, blob):
     path = fuzz_dir / "random.json"
