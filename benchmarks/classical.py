@@ -2,6 +2,7 @@
 
     python benchmarks/classical.py                                   # foot, all algorithms, default settings
     python benchmarks/classical.py --scenes foot,jaw,chest,abdomen --algorithms sart,asd-pocs
+    python benchmarks/classical.py --scenes heldout:head-256,heldout:jaw-noisy --dice   # benchmarks/heldout.py
     python benchmarks/classical.py --runs "sart:iterations=5" "sart:iterations=10" "cgls:iterations=30" \\
         --threads 2 --out benchmarks/results/classical_cpu.json
 
@@ -73,7 +74,8 @@ def main(argv=None) -> int:
     from kneas_method.evaluation.surfaces import volume_material_metrics
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", default="foot", help="comma-separated built-in names or NAF pickle paths")
+    ap.add_argument("--scenes", default="foot",
+                    help="comma-separated built-in names, NAF pickle paths or heldout:NAME (benchmarks/heldout.py)")
     ap.add_argument("--algorithms", default=",".join(ALGORITHMS), help="comma-separated, used when --runs is not given")
     ap.add_argument("--iterations", type=int, default=None, help="iterations for every --algorithms run (default: each one's own)")
     ap.add_argument("--runs", nargs="*", default=None, help="explicit runs 'algorithm[:key=value,...]'")
@@ -99,7 +101,13 @@ def main(argv=None) -> int:
     print(header)
     print("-" * len(header))
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
-        scene = resolve_scene(spec)
+        if spec.startswith("heldout:"):
+            sys.path.insert(0, str(HERE))
+            from heldout import heldout_scene
+
+            scene = heldout_scene(spec.split(":", 1)[1])
+        else:
+            scene = resolve_scene(spec)
         for name, kwargs in runs:
             residuals = []
             load0 = os.getloadavg()[0]

@@ -13,8 +13,10 @@ from kneas_method.classical import (
     asd_pocs,
     back,
     cgls,
+    choose_backprojector,
     forward,
     os_sart,
+    pixels_per_voxel,
     sart,
     spread_order,
     total_variation,
@@ -221,13 +223,54 @@ def test_cgls_residual_falls(tiny):
 
 
 def test_cgls_with_the_voxel_backprojector_converges(tiny):
-    # RTK's way (the default): the scaled voxel-driven back-projector in the CG recursions
+    # RTK's way (what "auto" picks for this detector): the scaled voxel-driven back-projector in the CG recursions
     res = []
     vol = cgls(tiny.train.projections, tiny.geometry, tiny.train.angles, iterations=8,
                progress=lambda i, n, r: res.append(r))
     assert res[-1] < 0.4 * res[0]
     assert relative_residual(tiny, vol) == pytest.approx(res[-1], rel=1e-3)
     assert psnr3d(vol, tiny.image) > psnr3d(np.zeros_like(vol), tiny.image) + 5
+
+
+@pytest.fixture(scope="module")
+def fine_detector():
+    """``tiny`` with a 64^2 detector: pixels at the isocentre are 0.56 voxels wide."""
+    return simulate_phantom("foot", SimulationConfig(n_voxel=24, voxel_mm=10, n_detector=64, n_train=20, n_val=4))
+
+
+def test_auto_backprojector_follows_the_detector_pixel_at_the_isocentre(tiny, fine_detector):
+    g = tiny.geometry
+    expected = min(g.d_detector) * g.dso / g.dsd / max(g.d_voxel)
+    assert pixels_per_voxel(g) == pytest.approx(expected) and expected > 1  # 32^2 detector: 1.12
+    assert choose_backprojector("auto", g) == "voxel"
+    assert pixels_per_voxel(fine_detector.geometry) < 1
+    assert choose_backprojector("auto", fine_detector.geometry) == "matched"
+    assert choose_backprojector("voxel", fine_detector.geometry) == "voxel"  # an explicit choice is kept
+    parallel = replace(g, mode="parallel")
+    assert pixels_per_voxel(parallel) == pytest.approx(min(g.d_detector) / max(g.d_voxel))
+
+
+def test_cgls_on_a_fine_detector_does_not_diverge(fine_detector):
+    # the voxel-driven back-projector point-samples a detector finer than the voxels and CGLS's
+    # recursions run away; "auto" takes the matched adjoint there and converges
+    s = fine_detector
+    args = (s.train.projections, s.geometry, s.train.angles)
+    res = []
+    auto = cgls(*args, iterations=30, progress=lambda i, n, r: res.append(r))
+    voxel = cgls(*args, iterations=30, backprojector="voxel")
+    assert np.all(np.diff(res) <= 1e-6) and res[-1] < 0.2 * res[0]
+    assert psnr3d(auto, s.image) > psnr3d(np.zeros_like(auto), s.image) + 5
+    assert psnr3d(auto, s.image) > psnr3d(voxel, s.image) + 10
+    tv_auto = asd_pocs(*args, iterations=5)
+    assert psnr3d(tv_auto, s.image) > psnr3d(asd_pocs(*args, iterations=5, backprojector="voxel"), s.image)
+
+
+def test_run_settings_record_the_backprojector_auto_picked(fine_detector):
+    from kneas_method.classical.options import ReconstructionOptions
+    from kneas_method.classical.reconstruct import reconstruct
+
+    rec = reconstruct("cgls", fine_detector, ReconstructionOptions(iterations=1))
+    assert rec.settings["backprojector"] == "matched"
 
 
 def test_noisy_negative_line_integrals_and_warm_start(tiny):

@@ -2,7 +2,8 @@
 
 * :mod:`.projector`: the matched Joseph pair ``forward`` (A) / ``back`` (Aᵀ, its exact
   adjoint), the reusable :class:`Projector`, and the voxel-driven
-  :class:`VoxelBackprojector` (unmatched; the SART family's default back-projector).
+  :class:`VoxelBackprojector` (unmatched; what ``backprojector="auto"`` picks when detector pixels
+  at the isocentre are at least a voxel wide).
   The data simulator and the evaluation of volumes project with it too.
 * :mod:`.fdk`: Feldkamp-Davis-Kress filtered back-projection.
 * :mod:`.iterative`: ``sart``, ``os_sart``, ``cgls``, ``asd_pocs`` (TIGRE-style functions
@@ -16,8 +17,10 @@ from .iterative import (
     ALGORITHMS,
     asd_pocs,
     cgls,
+    choose_backprojector,
     interleaved_subsets,
     os_sart,
+    pixels_per_voxel,
     sart,
     spread_order,
     total_variation,
@@ -35,6 +38,8 @@ __all__ = [
     "os_sart",
     "cgls",
     "asd_pocs",
+    "choose_backprojector",
+    "pixels_per_voxel",
     "spread_order",
     "view_order",
     "interleaved_subsets",

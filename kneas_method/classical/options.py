@@ -10,7 +10,7 @@ from typing import Literal, Optional
 Algorithm = Literal["fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 ALGORITHMS: tuple[str, ...] = Algorithm.__args__
 FdkFilter = Literal["ram-lak", "shepp-logan", "cosine", "hann"]
-Backprojector = Literal["voxel", "matched"]
+Backprojector = Literal["auto", "voxel", "matched"]
 
 
 @dataclass
@@ -22,8 +22,9 @@ class ReconstructionOptions:
     relaxation: SART-family relaxation λ in (0, 2] (None: sart 0.5, os-sart / asd-pocs 1.0).
     subsets: OS-SART subsets (ASD-POCS: None = one view per update, as SART).
     positivity: clamp the volume at 0 after every SART-family update (ASD-POCS always does).
-    backprojector: the iterative methods' back-projector: ``voxel`` (voxel-driven, as RTK's
-        defaults) or ``matched`` (the projector's exact adjoint; textbook CGLS).
+    backprojector: the iterative methods' back-projector: ``auto`` (from the geometry: voxel-driven
+        when detector pixels at the isocentre are at least a voxel wide, else matched), ``voxel``
+        (voxel-driven, as RTK's defaults) or ``matched`` (the projector's exact adjoint).
     tv_steps: ASD-POCS total-variation descent steps per iteration.
     tv_alpha: ASD-POCS first TV step as a fraction of the first data step (the TV weight).
     """
@@ -33,6 +34,6 @@ class ReconstructionOptions:
     relaxation: Optional[float] = None
     subsets: Optional[int] = None
     positivity: bool = True
-    backprojector: Backprojector = "voxel"
+    backprojector: Backprojector = "auto"
     tv_steps: int = 20
     tv_alpha: float = 0.01

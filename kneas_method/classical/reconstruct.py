@@ -56,6 +56,10 @@ def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] 
     if algorithm not in ALGORITHMS:
         raise ConfigError(f"classical algorithm {algorithm!r} is not known; use one of {', '.join(ALGORITHMS)}")
     settings = algorithm_settings(algorithm, options, len(scene.train))
+    if "backprojector" in settings:  # record the one "auto" picks for this geometry
+        from .iterative import choose_backprojector
+
+        settings["backprojector"] = choose_backprojector(settings["backprojector"], scene.geometry)
     t0 = time.perf_counter()
     if algorithm == "fdk":
         from .fdk import fdk_reconstruct
