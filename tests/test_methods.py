@@ -89,6 +89,14 @@ def test_presets_fill_only_unset_values(monkeypatch):
     assert presets.resolve(r) == r  # idempotent
 
 
+def test_cpu_preset_skips_empty_space_unless_told_not_to():
+    c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    assert presets.resolve(c).model.occupancy_grid is True
+    assert presets.resolve(dataclasses.replace(c, preset="paper")).model.occupancy_grid is False  # the paper's sampler
+    off = dataclasses.replace(c, model=dataclasses.replace(c.model, occupancy_grid=False))
+    assert presets.resolve(off).model.occupancy_grid is False  # the user's choice wins
+
+
 def test_auto_preset_says_why(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     name, reason = presets.choose("auto")
