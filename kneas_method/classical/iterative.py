@@ -346,8 +346,8 @@ def cgls(projections, geometry: Geometry, angles, *, iterations: int = 30, backp
 
     With ``backprojector="matched"`` ``B = Aᵀ`` and this is textbook CGLS. With ``"voxel"``
     (what ``"auto"`` picks when detector pixels are at least a voxel wide) ``B = c · V``, the
-    voxel-driven back-projector scaled to ``Aᵀ``'s magnitude (``c = ΣAᵀ1 / ΣV1``), as RTK's conjugate-gradient filter does with its default voxel-based
-    back-projector: the recursions no longer minimise exactly, but the result is smoother
+    voxel-driven back-projector scaled to ``Aᵀ``'s magnitude (``c = ΣAᵀ1 / ΣV1``), as RTK's
+    conjugate-gradient filter does with its default voxel-based back-projector: the recursions no longer minimise exactly, but the result is smoother
     (the ray-spacing pattern of ``Aᵀ`` is the same one that costs SART, see the module
     docstring). Foot, 30 iterations: voxel 32.6 dB, matched 29.0 dB (RTK: 32.5 dB).
 
