@@ -52,6 +52,7 @@ BoundsSource = Literal["wide", "auto", "none"]
 BoundsMethod = Literal["gmm", "quantile", "bayes"]
 BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
+EvalProjections = Literal["rendered", "volume"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
 
@@ -70,6 +71,12 @@ class TrainerConfig:
             checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
         eval_views: held-out views rendered at intermediate evaluations (None = all).
+        eval_projections: how the final evaluation makes the held-out projections of its
+            2D metrics: ``rendered`` through the field (``model.num_eval_samples`` per ray;
+            the paper), or ``volume``: the field sampled at the voxel centres (the volume the
+            3D metrics score) and projected by the Joseph projector, the operator that scores
+            the classical methods' volumes too; tens of times fewer field queries, whatever
+            the detector size. None = the preset's (paper: rendered; cpu: volume).
         warm_start: ``none`` (the paper: train from the initialisation) or a classical
             method (``fdk``): before projection training, fit the model to the run's
             classical reconstruction at the voxel centres (``Trainer.warm_start``), an
@@ -93,6 +100,7 @@ class TrainerConfig:
     checkpoint_every: Optional[int] = None
     eval_chunk: Optional[int] = None
     eval_views: Optional[int] = None
+    eval_projections: Optional[EvalProjections] = None
     warm_start: Optional[WarmStart] = None
     warm_start_steps: Optional[int] = None
     warm_start_points: int = 16384

@@ -35,7 +35,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0, "s_init": 20.0, "lambda_eikonal": 0.01,
                   "occupancy_grid": False},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
-        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None,
+        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
                     "warm_start": "none", "warm_start_steps": 0},
         "run": {"bounds_volume": "prior"},
     },
@@ -55,7 +55,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
                   "occupancy_grid": True},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3,
+        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
                     "warm_start": "asd-pocs", "warm_start_steps": 300},
         "run": {"bounds_volume": "asd-pocs"},
     },
@@ -64,7 +64,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0, "s_init": 20.0, "lambda_eikonal": 0.01,
                   "occupancy_grid": False},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
-        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2,
+        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
                     "warm_start": "none", "warm_start_steps": 5},
         "run": {"bounds_volume": "prior"},
     },
@@ -173,6 +173,9 @@ def procedure_notes(config: TrainConfig) -> list[str]:
     if config.trainer.warm_start != "none" and config.trainer.warm_start_steps:
         notes.append(f"warm start: the model is first fitted to the {config.trainer.warm_start.upper()} reconstruction for "
                      f"{config.trainer.warm_start_steps} steps (not in the paper; --trainer.warm-start none trains from the initialisation)")
+    if config.trainer.eval_projections == "volume":
+        notes.append("evaluation: 2D metrics on the held-out views projected from the volume at the voxel centres (Joseph projector, "
+                     "as for the classical methods), not rendered through the field (--trainer.eval-projections rendered for the paper's)")
     if config.model.occupancy_grid:
         notes.append("empty space: samples only on the stretch of each ray inside the visual hull of the training views "
                      "(not in the paper; --model.occupancy-grid False samples the whole volume box)")

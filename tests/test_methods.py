@@ -97,6 +97,20 @@ def test_cpu_preset_skips_empty_space_unless_told_not_to():
     assert presets.resolve(off).model.occupancy_grid is False  # the user's choice wins
 
 
+def test_cpu_preset_scores_projections_of_the_volume_unless_told_not_to():
+    c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    cpu = presets.resolve(c)
+    assert cpu.trainer.eval_projections == "volume"
+    assert any("Joseph projector" in note for note in presets.procedure_notes(cpu))
+    paper = presets.resolve(dataclasses.replace(c, preset="paper"))
+    assert paper.trainer.eval_projections == "rendered"  # the paper's evaluation
+    assert not any("Joseph" in note for note in presets.procedure_notes(paper))
+    told = dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, eval_projections="rendered"))
+    assert presets.resolve(told).trainer.eval_projections == "rendered"  # the user's choice wins
+    with pytest.raises(ConfigError, match="eval_projections"):
+        presets.resolve(dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, eval_projections="exact")))
+
+
 def test_auto_preset_says_why(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     name, reason = presets.choose("auto")

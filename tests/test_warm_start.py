@@ -64,7 +64,7 @@ def test_presets_fill_and_check_the_options():
     paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
     assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("asd-pocs", "asd-pocs") and cpu.trainer.warm_start_steps > 0
     assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
-    assert len(presets.procedure_notes(cpu)) == 3 and presets.procedure_notes(paper) == []
+    assert len(presets.procedure_notes(cpu)) == 4 and presets.procedure_notes(paper) == []
     with pytest.raises(ConfigError, match="warm_start"):
         _tiny_config(warm_start="gt")
     with pytest.raises(ConfigError, match="bounds_volume"):

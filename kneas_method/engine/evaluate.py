@@ -3,15 +3,18 @@
 Used by ``kneas-train`` at the end of a run and by ``kneas-eval``:
 
 * :func:`evaluate_model` ``(model, scene, config, device) -> dict``: 2D metrics on
-  **all** held-out views (rendered with ``config.model.num_eval_samples`` evenly
-  spaced points per ray, ``config.trainer.eval_chunk`` rays at a time) and 3D
-  metrics on the model's attenuation sampled at the voxel centres, data units.
+  **all** held-out views and 3D metrics on the model's attenuation sampled at the
+  voxel centres, data units. The held-out projections are rendered through the field
+  (``config.model.num_eval_samples`` evenly spaced points per ray,
+  ``config.trainer.eval_chunk`` rays at a time) or projected from that volume
+  (``config.trainer.eval_projections``; :func:`model_arrays`).
 * :func:`evaluate_volume` ``(volume, scene) -> dict``: the same metrics for a
   voxel volume (FDK): 2D metrics by forward-projecting the volume to the
   held-out views (``classical.projector.forward``, Joseph), 3D metrics directly.
 
 Both return JSON-able dicts: ``psnr2d``, ``ssim2d`` (means over the held-out
-views), ``psnr2d_per_view``, ``ssim2d_per_view``, ``n_views``; with a ground
+views), ``psnr2d_per_view``, ``ssim2d_per_view``, ``n_views``, ``projections_2d``
+(``rendered`` or ``volume``: how the held-out projections were made); with a ground
 truth volume ``psnr3d``, ``ssim3d`` (exact unit conversion, peak 1, no fitting),
 ``psnr3d_ls``, ``ssim3d_ls``, ``ls_scale``, ``mse3d``. The helpers
 :func:`render_views` and :func:`sample_volume` return the arrays behind them
@@ -30,7 +33,7 @@ import torch
 from ..evaluation.metrics import projection_metrics, volume_metrics
 
 __all__ = ["evaluate_model", "evaluate_volume", "render_views", "sample_volume", "model_metrics_from_arrays",
-           "Evaluation", "evaluate_model_stage"]
+           "model_arrays", "eval_projections", "Evaluation", "evaluate_model_stage"]
 
 Progress = Optional[Callable[[int, int], None]]
 
@@ -107,26 +110,58 @@ def model_metrics_from_arrays(pred_proj: np.ndarray, scene, volume: Optional[np.
     return out
 
 
-def evaluate_model(model, scene, config, device, *, progress: Progress = None, return_arrays: bool = False):
+def eval_projections(config) -> str:
+    """How a run's final evaluation makes its held-out projections: ``rendered`` or ``volume``
+    (``trainer.eval_projections``; ``rendered`` for configs written before it existed)."""
+    try:
+        return config.trainer.eval_projections or "rendered"
+    except AttributeError:
+        return "rendered"
+
+
+def model_arrays(model, scene, config, device, *, views: Progress = None, voxels: Progress = None) -> tuple[np.ndarray, np.ndarray]:
+    """The held-out projections ``[N, nV, nU]`` and the volume at the voxel centres ``[nx, ny, nz]``
+    (data units) that score a model.
+
+    The projections are rendered through the field (:func:`render_views`) or, with
+    ``trainer.eval_projections = volume``, the volume projected by the Joseph projector
+    (``classical.projector.forward``, as :func:`evaluate_volume` scores a classical volume;
+    the test suite checks that both agree on a smooth field). ``views(done, total)`` reports
+    held-out views, ``voxels(done, total)`` voxels.
+    """
+    from ..classical.projector import forward
+
+    device = torch.device(device)
+    volume = sample_volume(model, scene.geometry, device=device, progress=voxels)
+    angles = np.asarray(scene.val.angles)
+    if eval_projections(config) == "volume":
+        proj = forward(volume, scene.geometry, angles, progress=views)
+    else:
+        nu, nv = scene.geometry.n_detector
+        rays = None if views is None else (lambda done, total: views(done / (nu * nv), len(angles)))
+        proj = render_views(model, scene, angles, device=device, chunk=_chunk(config), n_samples=_eval_samples(config), progress=rays)
+    return proj, volume
+
+
+def evaluate_model(model, scene, config, device, *, return_arrays: bool = False):
     """2D metrics on all held-out views and 3D metrics at the voxel centres (data units).
 
     Args:
         model: a :class:`~kneas_method.model.CTModel` (bounds set, weights loaded).
         scene: the scene (its ``val`` views are the held-out views; ``image`` the
             ground truth, if any).
-        config: the resolved TrainConfig (uses ``model.num_eval_samples`` and ``trainer.eval_chunk``).
+        config: the resolved TrainConfig (``trainer.eval_projections``, and for rendered
+            projections ``model.num_eval_samples`` and ``trainer.eval_chunk``).
         device: torch device the model lives on.
-        progress: optional ``progress(done, total)`` over rendered rays and then voxels.
-        return_arrays: also return ``(projections [N, nV, nU], volume [nx, ny, nz] or None)``.
+        return_arrays: also return ``(projections [N, nV, nU], volume [nx, ny, nz])``.
 
     Returns:
-        The metrics dict (see the module docstring), or ``(metrics, arrays)``.
+        The metrics dict (see the module docstring; ``projections_2d`` says how the
+        projections were made), or ``(metrics, arrays)``.
     """
-    device = torch.device(device)
-    proj = render_views(model, scene, scene.val.angles, device=device, chunk=_chunk(config),
-                        n_samples=_eval_samples(config), progress=progress)
-    volume = sample_volume(model, scene.geometry, device=device, progress=progress) if scene.image is not None else None
+    proj, volume = model_arrays(model, scene, config, device)
     metrics = model_metrics_from_arrays(proj, scene, volume)
+    metrics["projections_2d"] = eval_projections(config)
     return (metrics, (proj, volume)) if return_arrays else metrics
 
 
@@ -142,6 +177,7 @@ def evaluate_volume(volume, scene, *, return_arrays: bool = False, progress: Pro
     vol = np.asarray(volume.detach().cpu() if hasattr(volume, "detach") else volume, dtype=np.float32)
     proj = forward(vol, scene.geometry, np.asarray(scene.val.angles), progress=progress)
     metrics = model_metrics_from_arrays(proj, scene, vol)
+    metrics["projections_2d"] = "volume"
     return (metrics, (proj, vol)) if return_arrays else metrics
 
 
@@ -157,22 +193,24 @@ class Evaluation:
 
 
 def evaluate_model_stage(model, scene, config, device, console) -> Evaluation:
-    """:func:`evaluate_model` with progress shown (views done / total, then voxels) on ``console``.
+    """:func:`evaluate_model` with progress shown (voxels, then held-out views) on ``console``.
 
     The volume at the voxel centres is always sampled: 3D metrics where the scene has a
     ground truth, the slice figure in any case."""
     from .progress import stage_progress
 
     t0 = time.perf_counter()
-    nu, nv = scene.geometry.n_detector
+    how = eval_projections(config)
     n_views, n_voxels = len(scene.val), int(np.prod(scene.geometry.n_voxel))
+    info = (f"{n_views} held-out views projected from the volume (Joseph)" if how == "volume"
+            else f"{n_views} held-out views x {_eval_samples(config)} samples")
     with stage_progress(console, unit="views") as progress:
-        task = progress.add_task("evaluation", total=n_views, info=f"{n_views} held-out views x {_eval_samples(config)} samples")
-        proj = render_views(model, scene, scene.val.angles, device=device, chunk=_chunk(config), n_samples=_eval_samples(config),
-                            progress=lambda done, total: progress.update(task, completed=done / (nu * nv)))
         vtask = progress.add_task("volume", total=n_voxels, info="attenuation at the voxel centres", unit="voxels")
-        volume = sample_volume(model, scene.geometry, device=device, progress=lambda d, t: progress.update(vtask, completed=d))
+        task = progress.add_task("evaluation", total=n_views, info=info)
+        proj, volume = model_arrays(model, scene, config, device, views=lambda d, t: progress.update(task, completed=d),
+                                    voxels=lambda d, t: progress.update(vtask, completed=d))
     metrics = model_metrics_from_arrays(proj, scene, volume)
+    metrics["projections_2d"] = how
     return Evaluation(metrics, proj, volume, time.perf_counter() - t0)
 
 
