@@ -86,6 +86,13 @@ class TrainerConfig:
         warm_start_points: voxel centres per warm-start step.
         warm_start_occupancy: weight of the warm start's per-material occupancy
             cross-entropy (``CTModel.volume_loss_dict``; 0 = MSE only).
+        warm_start_anchor: weight of the warm-start volume kept as a prior during projection
+            training: ``anchor_points`` random voxel centres per step add this weight x the MSE
+            between ``mu`` and that volume (``Trainer.anchor_loss``). Sparse views leave much of
+            the volume unconstrained, and there the (TV-regularised) classical volume holds the
+            field instead of the step noise; the projections still decide where they disagree.
+            0 = off; None = the preset's (paper 0; cpu 0.01). Needs ``warm_start``.
+        anchor_points: voxel centres per step of that prior.
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -105,6 +112,8 @@ class TrainerConfig:
     warm_start_steps: Optional[int] = None
     warm_start_points: int = 16384
     warm_start_occupancy: float = 0.01
+    warm_start_anchor: Optional[float] = None
+    anchor_points: int = 4096
     log_every: int = 50
     max_bad_steps: int = 5
 

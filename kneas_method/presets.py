@@ -36,7 +36,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 0},
+                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0},
         "run": {"bounds_volume": "prior"},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
@@ -55,8 +55,8 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
                   "occupancy_grid": True},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 4, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
-                    "warm_start": "asd-pocs", "warm_start_steps": 300},
+        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
+                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01},
         "run": {"bounds_volume": "asd-pocs"},
     },
     "tiny": {
@@ -65,7 +65,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 5},
+                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0},
         "run": {"bounds_volume": "prior"},
     },
 }
@@ -150,6 +150,16 @@ def resolve(config: RunConfig) -> RunConfig:
     if not (isinstance(trainer.warm_start_occupancy, (int, float)) and not isinstance(trainer.warm_start_occupancy, bool)
             and math.isfinite(trainer.warm_start_occupancy) and trainer.warm_start_occupancy >= 0):
         raise ConfigError(f"trainer.warm_start_occupancy must be a number >= 0, got {trainer.warm_start_occupancy!r}")
+    anchor = trainer.warm_start_anchor
+    if not (isinstance(anchor, (int, float)) and not isinstance(anchor, bool) and math.isfinite(anchor) and anchor >= 0):
+        raise ConfigError(f"trainer.warm_start_anchor must be a number >= 0, got {anchor!r}")
+    if trainer.warm_start == "none" and config.trainer.warm_start_anchor is None:
+        trainer = dataclasses.replace(trainer, warm_start_anchor=0.0)  # no warm-start volume, no prior from it
+    elif anchor > 0 and trainer.warm_start == "none":
+        raise ConfigError("trainer.warm_start_anchor keeps the warm-start volume as a prior, but warm_start is none; "
+                          "give --trainer.warm-start asd-pocs (or another method) or --trainer.warm-start-anchor 0")
+    if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
+        raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     bounds_volume = config.bounds_volume if config.bounds_volume is not None else table["run"]["bounds_volume"]
     return dataclasses.replace(
         config,
@@ -173,6 +183,9 @@ def procedure_notes(config: TrainConfig) -> list[str]:
     if config.trainer.warm_start != "none" and config.trainer.warm_start_steps:
         notes.append(f"warm start: the model is first fitted to the {config.trainer.warm_start.upper()} reconstruction for "
                      f"{config.trainer.warm_start_steps} steps (not in the paper; --trainer.warm-start none trains from the initialisation)")
+    if config.trainer.warm_start != "none" and config.trainer.warm_start_anchor:
+        notes.append(f"anchor: during projection training the field is also pulled towards the {config.trainer.warm_start.upper()} "
+                     f"volume (weight {config.trainer.warm_start_anchor:g}; not in the paper; --trainer.warm-start-anchor 0 turns it off)")
     if config.trainer.eval_projections == "volume":
         notes.append("evaluation: 2D metrics on the held-out views projected from the volume at the voxel centres (Joseph projector, "
                      "as for the classical methods), not rendered through the field (--trainer.eval-projections rendered for the paper's)")

@@ -59,12 +59,53 @@ def test_warm_start_is_deterministic(small_scene, tmp_path):
     assert np.array_equal(vols[0], vols[1])
 
 
+def test_anchor_loss_is_the_weighted_mse_to_the_prior_volume(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    target = np.asarray(scene.image, dtype=np.float32)
+    trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    trainer.set_anchor(target - 0.05, weight=0.5, points_per_step=300)  # negatives are clipped, as in the warm start
+    draw = torch.Generator().manual_seed(0)
+    draw.set_state(trainer.generator.get_state())
+    idx = torch.randint(0, target.size, (300,), generator=draw)
+    points = scene.geometry.voxel_centres().reshape(-1, 3)[idx]
+    with torch.no_grad():
+        expected = 0.5 * torch.mean((trainer.model.query(points)["mu"] - torch.as_tensor(np.clip(target - 0.05, 0, None)).reshape(-1)[idx]) ** 2)
+        assert float(trainer.anchor_loss()) == pytest.approx(float(expected), rel=1e-6)
+    assert torch.equal(trainer.generator.get_state(), draw.get_state())  # drawn from the run's generator: resumable
+    with pytest.raises(KneasError, match="grid"):
+        trainer.set_anchor(target[:-1], weight=0.5, points_per_step=10)
+    trainer.set_anchor(target, weight=0.0, points_per_step=10)
+    assert trainer.anchor is None
+
+
+def test_anchor_holds_the_field_near_the_prior_during_projection_training(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    target = np.asarray(scene.image, dtype=np.float32)
+    scores = {}
+    for weight in (0.0, 100.0):
+        trainer = Trainer(_tiny_config(epochs=20), scene, tmp_path / str(weight), epochs=20, device="cpu",
+                          bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+        trainer.set_anchor(target, weight=weight, points_per_step=2048)
+        trainer.train()
+        scores[weight] = psnr3d(sample_volume(trainer.model, scene.geometry), target)
+        assert ("anchor" in trainer.history) == (weight > 0)
+    assert scores[100.0] > scores[0.0] + 1.0, scores
+
+
 def test_presets_fill_and_check_the_options():
     cpu = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu"))
     paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
     assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("asd-pocs", "asd-pocs") and cpu.trainer.warm_start_steps > 0
     assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
-    assert len(presets.procedure_notes(cpu)) == 4 and presets.procedure_notes(paper) == []
+    assert len(presets.procedure_notes(cpu)) == 5 and presets.procedure_notes(paper) == []
+    assert (cpu.trainer.warm_start_anchor, paper.trainer.warm_start_anchor) == (0.01, 0.0)
+    cpu_cfg = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    cold = dataclasses.replace(cpu_cfg, trainer=dataclasses.replace(cpu_cfg.trainer, warm_start="none"))
+    assert presets.resolve(cold).trainer.warm_start_anchor == 0.0  # no warm-start volume: no anchor, no error
+    with pytest.raises(ConfigError, match="warm_start is none"):
+        presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, warm_start_anchor=0.1)))
+    with pytest.raises(ConfigError, match="warm_start_anchor"):
+        _tiny_config(warm_start="fdk", warm_start_anchor=-1.0)
     with pytest.raises(ConfigError, match="warm_start"):
         _tiny_config(warm_start="gt")
     with pytest.raises(ConfigError, match="bounds_volume"):

@@ -38,7 +38,8 @@ def set_visual_hull(model, scene, label: str = "model") -> None:
 def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, label: str, tb=None,
                 warm: Optional[WarmStartVolume] = None) -> Trainer:
     """Build the stage's Trainer, resume it if it has checkpoints, else warm-start it from
-    ``warm`` when given (``trainer.warm_start_steps`` steps), and train it."""
+    ``warm`` when given (``trainer.warm_start_steps`` steps), keep ``warm`` as a prior when
+    ``trainer.warm_start_anchor`` > 0 (resumed runs too), and train it."""
     trainer = Trainer(config, scene, run_dir, epochs=epochs, device=device, bounds=bounds, label=label, console=console,
                       tb=tb, tb_prefix=f"{label}/")
     path = trainer.resume()
@@ -55,6 +56,11 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
         seconds = trainer.warm_start(warm.volume, steps, int(config.trainer.warm_start_points), what=what,
                                      occupancy_weight=float(config.trainer.warm_start_occupancy))
         say(f"{label}: warm start done in {seconds:.1f} s")
+    anchor = float(config.trainer.warm_start_anchor or 0.0)
+    if warm is not None and anchor > 0:
+        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points))
+        say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, {config.trainer.anchor_points:,} voxel centres per step "
+            "(--trainer.warm-start-anchor 0 trains on the projections alone)")
     say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
     trainer.train()
     return trainer

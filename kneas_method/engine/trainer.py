@@ -134,6 +134,7 @@ class Trainer:
         self.warm_start_time_s = 0.0
         self.last_checkpoint: Optional[Path] = None
         self.complete = False
+        self.anchor: Optional[tuple[torch.Tensor, torch.Tensor, float, int]] = None
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -276,6 +277,26 @@ class Trainer:
         self.warm_start_time_s = time.perf_counter() - started
         return self.warm_start_time_s
 
+    def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int) -> None:
+        """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
+        prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none."""
+        if weight <= 0:
+            self.anchor = None
+            return
+        if tuple(volume.shape) != tuple(self.scene.geometry.n_voxel):
+            raise KneasError(f"prior volume has shape {tuple(volume.shape)} but the scene's grid is "
+                             f"{tuple(self.scene.geometry.n_voxel)}; recompute it for this scene")
+        points = self.scene.geometry.voxel_centres(device=self.device).reshape(-1, 3)
+        targets = torch.as_tensor(np.clip(np.asarray(volume, dtype=np.float32), 0.0, None), device=self.device).reshape(-1)
+        self.anchor = (points, targets, float(weight), int(points_per_step))
+
+    def anchor_loss(self) -> torch.Tensor:
+        """``weight`` x the MSE between ``mu`` and the prior volume at ``points_per_step`` voxel
+        centres drawn with the run's loss generator (so a resumed run draws the same ones)."""
+        points, targets, weight, n = self.anchor
+        idx = torch.randint(0, len(points), (min(n, len(points)),), generator=self.generator).to(self.device)
+        return weight * torch.mean((self.model.query(points[idx])["mu"] - targets[idx]) ** 2)
+
     # ----------------------------------------------------------------- loop
     def train(self, on_step: Optional[Callable[[int], None]] = None) -> None:
         """Run the remaining steps; raise StageInterrupted on Ctrl-C, KneasError on repeated bad steps."""
@@ -298,6 +319,9 @@ class Trainer:
                     batch = self.datamanager.next_train()
                     frac = self.step / self.total_steps
                     losses = self.model.loss_dict(batch, frac, generator=self.generator)
+                    if self.anchor is not None:
+                        losses["anchor"] = self.anchor_loss()
+                        losses["total"] = losses["total"] + losses["anchor"]
                     total = losses["total"]
                     ok = bool(torch.isfinite(total))
                     self.optimizer.zero_grad(set_to_none=True)

@@ -1,0 +1,77 @@
+"""The representation ceiling of a trained run's model: the same model, fitted to the exact volume.
+
+    python benchmarks/ceiling.py RUN_DIR [RUN_DIR ...] [--steps 1500] [--out benchmarks/results/ceiling_cpu.json]
+
+For each k-neas (or any neural) run folder on a built-in scene: a fresh model of the run's own
+config (same encoding, K, bounds from its ``bounds.json``, same empty-space grid) is fitted to the
+scene's **ground-truth** volume at the voxel centres with the warm start's loss
+(``Trainer.warm_start``: MSE of mu + occupancy term + eikonal, ``--steps`` Adam steps of
+``trainer.warm_start_points`` voxel centres). Its psnr3d / ssim3d is how far this representation
+can go; the run's own psnr3d is how far training from the projections got. Not part of the test
+suite.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def ceiling(run_dir: Path, steps: int) -> dict:
+    from kneas_method.engine.evaluate import sample_volume
+    from kneas_method.engine.loading import load_scene, read_run_config
+    from kneas_method.engine.train_stage import set_visual_hull
+    from kneas_method.engine.trainer import Trainer
+    from kneas_method.evaluation.metrics import volume_metrics
+
+    config = read_run_config(run_dir)
+    scene = load_scene(config)
+    if scene.image is None:
+        raise SystemExit(f"{run_dir}: the scene has no ground-truth volume; the ceiling needs a built-in scene")
+    bounds = None
+    if (run_dir / "bounds.json").is_file():
+        b = json.loads((run_dir / "bounds.json").read_text())
+        bounds = (b["alphas"], b["betas"])
+    gt = np.asarray(scene.image, dtype=np.float32)
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(config, scene, Path(tmp), epochs=1, device="cpu", bounds=bounds, label="ceiling")
+        if trainer.model.occupancy is not None:
+            set_visual_hull(trainer.model, scene, "ceiling")
+        seconds = trainer.warm_start(gt, steps, int(config.trainer.warm_start_points), what="ground-truth",
+                                     occupancy_weight=float(config.trainer.warm_start_occupancy))
+        volume = sample_volume(trainer.model, scene.geometry)
+    m = volume_metrics(volume, gt)
+    run_metrics = json.loads((run_dir / "metrics.json").read_text()) if (run_dir / "metrics.json").is_file() else {}
+    return {"run": str(run_dir), "scene": scene.name, "method": config.method, "steps": steps, "fit_seconds": round(seconds, 1),
+            "ceiling_psnr3d": round(float(m["psnr3d"]), 2), "ceiling_ssim3d": round(float(m["ssim3d"]), 4),
+            "run_psnr3d": run_metrics.get("psnr3d"), "run_ssim3d": run_metrics.get("ssim3d")}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", type=Path, help="run folders written by kneas-train on built-in scenes")
+    p.add_argument("--steps", type=int, default=1500, help="Adam steps of the fit to the exact volume (default 1500)")
+    p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
+    args = p.parse_args(argv)
+    rows = []
+    for run in args.runs:
+        t0 = time.perf_counter()
+        row = ceiling(run, args.steps)
+        row["wall_s"] = round(time.perf_counter() - t0, 1)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"machine": f"{platform.machine()} {platform.system()}", "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
