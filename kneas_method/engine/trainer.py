@@ -234,6 +234,16 @@ class Trainer:
         return float(np.mean(psnr2d(pred, np.asarray(val.projections)[idx])))
 
     # ----------------------------------------------------------- warm start
+    def _voxel_targets(self, volume: np.ndarray, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The voxel centres ``[V, 3]`` (model units) and ``volume``'s values there ``[V]`` (data
+        units, negative values clipped to 0); ``volume`` must be on the scene's voxel grid."""
+        if tuple(volume.shape) != tuple(self.scene.geometry.n_voxel):
+            raise KneasError(f"{what} volume has shape {tuple(volume.shape)} but the scene's grid is "
+                             f"{tuple(self.scene.geometry.n_voxel)}; recompute it for this scene")
+        points = self.scene.geometry.voxel_centres(device=self.device).reshape(-1, 3)
+        targets = torch.as_tensor(np.clip(np.asarray(volume, dtype=np.float32), 0.0, None), device=self.device).reshape(-1)
+        return points, targets
+
     def warm_start(self, volume: np.ndarray, steps: int, points_per_step: int, what: str = "FDK",
                    occupancy_weight: float = 0.0) -> float:
         """Fit the fresh model to an attenuation ``volume`` (data units, the scene's voxel
@@ -245,12 +255,8 @@ class Trainer:
         resumed run matches a straight one). Returns the wall time in seconds."""
         if self.step != 0:
             raise KneasError(f"the warm start runs before training, but the {self.label} stage is at step {self.step}")
-        if tuple(volume.shape) != tuple(self.scene.geometry.n_voxel):
-            raise KneasError(f"warm-start volume has shape {tuple(volume.shape)} but the scene's grid is "
-                             f"{tuple(self.scene.geometry.n_voxel)}; recompute it for this scene")
         started = time.perf_counter()
-        points = self.scene.geometry.voxel_centres(device=self.device).reshape(-1, 3)
-        targets = torch.as_tensor(np.clip(np.asarray(volume, dtype=np.float32), 0.0, None), device=self.device).reshape(-1)
+        points, targets = self._voxel_targets(volume, "warm-start")
         optimizer = torch.optim.Adam(self.model.parameters(), lr=float(self.config.trainer.lr))
         gen = torch.Generator(device="cpu")
         gen.manual_seed(int(self.config.seed) + 104729)
@@ -283,11 +289,7 @@ class Trainer:
         if weight <= 0:
             self.anchor = None
             return
-        if tuple(volume.shape) != tuple(self.scene.geometry.n_voxel):
-            raise KneasError(f"prior volume has shape {tuple(volume.shape)} but the scene's grid is "
-                             f"{tuple(self.scene.geometry.n_voxel)}; recompute it for this scene")
-        points = self.scene.geometry.voxel_centres(device=self.device).reshape(-1, 3)
-        targets = torch.as_tensor(np.clip(np.asarray(volume, dtype=np.float32), 0.0, None), device=self.device).reshape(-1)
+        points, targets = self._voxel_targets(volume, "prior")
         self.anchor = (points, targets, float(weight), int(points_per_step))
 
     def anchor_loss(self) -> torch.Tensor:
