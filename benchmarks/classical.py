@@ -81,7 +81,8 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", nargs="*", default=None, help="explicit runs 'algorithm[:key=value,...]'")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval)")
+    ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
+                    "by BIC), and under dice_valleys the same with the cpu preset's K rule (K = 1..6, bic-valleys)")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)
@@ -131,6 +132,11 @@ def main(argv=None) -> int:
                 row["dice"] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
                 row["dice_mean"] = mm["dice_mean"]
                 row["chamfer_mm_mean"] = mm.get("chamfer_mm_mean")
+                mv = volume_material_metrics(vol, scene, max_components=6, k_rule="bic-valleys",
+                                             surfaces=scene.membership is not None)
+                row["dice_valleys"] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
+                row["dice_mean_valleys"] = mv["dice_mean"]
+                row["chamfer_mm_mean_valleys"] = mv.get("chamfer_mm_mean")
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "

@@ -31,6 +31,19 @@ Alternatives (options beside it, never silently instead of it; SPEC §4):
 
 If a boundary cannot be placed (no interior minimum / crossing), the midpoint of
 the two means is used and a warning is recorded in ``warnings_`` and ``to_dict``.
+
+Choosing K on a reconstruction rather than a trained prior (options beside the
+paper's, used by the cpu preset; ``k_rule`` and ``min_std``):
+
+* ``k_rule="bic-valleys"``: the lowest-BIC K among those whose every boundary can
+  be placed by the boundary rule (for ``gmm``: a valley of the mixture density). A
+  K that splits one material into two overlapping components has no valley
+  between them, so it is not a K of distinct materials.
+* ``min_std``: the smallest component standard deviation, as a fraction of the
+  ``upper_percentile`` value (sklearn's ``reg_covar``). A regularised reconstruction
+  (TV) flattens a large material into a spike that a component of near-zero width
+  fits far better in likelihood than any material boundary is worth; with a floor
+  the components follow the materials instead.
 """
 
 from __future__ import annotations
@@ -146,10 +159,15 @@ class GMMBounds:
         method: ``"gmm"`` (paper: mixture-density valleys), ``"quantile"`` or
             ``"bayes"`` (see module docstring).
         n_init: GaussianMixture restarts per K.
+        k_rule: ``"bic"`` (paper: the lowest BIC) or ``"bic-valleys"`` (the lowest BIC
+            among K whose boundaries can all be placed; see module docstring).
+        min_std: smallest component standard deviation as a fraction of the
+            ``upper_percentile`` value (scale-free); 0 = sklearn's default regulariser.
 
     Fitted attributes: ``n_components_``, ``boundaries_ [K+1]``, ``alphas_ [K]``,
     ``betas_ [K]``, ``means_ [K]``, ``stds_ [K]``, ``weights_ [K]`` (sorted by mean),
-    ``bic_`` (``{K: BIC}``, in the units of the input values), ``gmm_`` (the chosen
+    ``bic_`` (``{K: BIC}``, in the units of the input values), ``placeable_`` (``{K: bool}``,
+    every boundary placed by the rule; filled for each K tried under ``bic-valleys``), ``gmm_`` (the chosen
     ``sklearn.mixture.GaussianMixture``, fitted on values divided by ``unit_``),
     ``air_threshold_``, ``n_values_``, ``n_kept_``, ``warnings_``, ``kept_`` (the
     values used for the fits).
@@ -166,6 +184,8 @@ class GMMBounds:
         max_samples: int = 200_000,
         method: str = "gmm",
         n_init: int = 1,
+        k_rule: str = "bic",
+        min_std: float = 0.0,
     ):
         self.n_components = n_components
         self.max_components = max_components
@@ -176,11 +196,18 @@ class GMMBounds:
         self.max_samples = max_samples
         self.method = method
         self.n_init = n_init
+        self.k_rule = k_rule
+        self.min_std = min_std
 
     # ------------------------------------------------------------- settings
     def _check_settings(self):
         if self.method not in ("gmm", "quantile", "bayes"):
             raise ConfigError(f"bounds method {self.method!r} is not known; use 'gmm' (paper), 'quantile' or 'bayes'")
+        if self.k_rule not in ("bic", "bic-valleys"):
+            raise ConfigError(f"bounds K rule {self.k_rule!r} is not known; use 'bic' (paper) or 'bic-valleys'")
+        if not (isinstance(self.min_std, (int, float, np.integer, np.floating)) and not isinstance(self.min_std, bool)
+                and math.isfinite(self.min_std) and 0 <= self.min_std < 1):
+            raise ConfigError(f"min_std must be a fraction in [0, 1) of the upper percentile, got {self.min_std!r}")
         if not (isinstance(self.max_components, int) and self.max_components >= 1):
             raise ConfigError(f"max_components must be an integer >= 1, got {self.max_components!r}")
         if self.n_components is not None and not (isinstance(self.n_components, (int, np.integer)) and self.n_components >= 1):
@@ -195,7 +222,8 @@ class GMMBounds:
 
     def get_params(self) -> dict:
         return {k: getattr(self, k) for k in ("n_components", "max_components", "air_threshold", "upper_percentile",
-                                               "upper_factor", "random_state", "max_samples", "method", "n_init")}
+                                               "upper_factor", "random_state", "max_samples", "method", "n_init",
+                                               "k_rule", "min_std")}
 
     # ------------------------------------------------------------------ fit
     def fit(self, values) -> "GMMBounds":
@@ -235,41 +263,45 @@ class GMMBounds:
 
         upper = self.upper_factor * float(np.percentile(kept, self.upper_percentile))
         # Fit on values in units of the upper percentile so the sklearn covariance
-        # regulariser (1e-6) is negligible whatever the attenuation unit.
+        # regulariser (1e-6, or min_std squared) means the same whatever the attenuation unit.
         self.unit_ = float(np.percentile(kept, self.upper_percentile)) or 1.0
         z = (kept / self.unit_).reshape(-1, 1)
         n_unique = np.unique(z).size
         ks = [k for k in range(1, self.max_components + 1) if k <= n_unique]
+        reg_covar = max(1e-6, float(self.min_std) ** 2)  # z is in units of the upper percentile
         self.bic_: dict[int, float] = {}
+        self.placeable_: dict[int, bool] = {}
         models = {}
-        for k in ks:
-            gm = GaussianMixture(n_components=k, covariance_type="full", random_state=self.random_state, n_init=self.n_init)
+
+        def fit_k(k: int):
+            gm = GaussianMixture(n_components=k, covariance_type="full", random_state=self.random_state, n_init=self.n_init,
+                                 reg_covar=reg_covar)
             with _warnings.catch_warnings():
                 _warnings.simplefilter("ignore")  # ConvergenceWarning on tiny inputs; the BIC still compares
                 gm.fit(z)
             models[k] = gm
             # BIC in the units of the input values: log-likelihood shifts by -n·log(unit)
             self.bic_[k] = float(gm.bic(z) + 2 * z.shape[0] * math.log(self.unit_))
+
+        for k in ks:
+            fit_k(k)
         if self.n_components is not None:
             k = int(self.n_components)
             if k not in models:
-                gm = GaussianMixture(n_components=k, covariance_type="full", random_state=self.random_state, n_init=self.n_init)
                 if k > n_unique:
                     raise KneasError(f"n_components={k} but the samples hold only {n_unique} distinct values; choose fewer materials")
-                gm.fit(z)
-                models[k] = gm
-                self.bic_[k] = float(gm.bic(z) + 2 * z.shape[0] * math.log(self.unit_))
-        else:
+                fit_k(k)
+            inner = self._adopt(models[k], k, kept)
+        elif self.k_rule == "bic":
             k = min(self.bic_, key=self.bic_.get)
-        gm = models[k]
-        self.gmm_ = gm
-        self.n_components_ = k
-        order = np.argsort(gm.means_[:, 0])
-        self.means_ = gm.means_[order, 0] * self.unit_
-        self.stds_ = np.sqrt(gm.covariances_[order, 0, 0]) * self.unit_
-        self.weights_ = gm.weights_[order].copy()
+            inner = self._adopt(models[k], k, kept)
+        else:  # bic-valleys: the lowest BIC among the K whose boundaries can all be placed
+            for k in sorted(self.bic_, key=self.bic_.get):
+                inner = self._adopt(models[k], k, kept)
+                self.placeable_[k] = not self.warnings_
+                if self.placeable_[k]:
+                    break
 
-        inner = self._inner_boundaries(kept)
         b = np.array([0.0, *inner, upper])
         if b[-1] <= b[-2]:
             raise KneasError(
@@ -284,6 +316,19 @@ class GMMBounds:
         for w in self.warnings_:
             _warnings.warn(w, stacklevel=2)
         return self
+
+    def _adopt(self, gm, k: int, kept: np.ndarray) -> list[float]:
+        """Make ``gm`` (K = ``k``, fitted on values / ``unit_``) the chosen mixture: sets
+        ``gmm_``, ``n_components_``, ``means_``, ``stds_``, ``weights_`` (sorted by mean) and
+        ``warnings_``; returns its inner boundaries (data units)."""
+        self.gmm_ = gm
+        self.n_components_ = k
+        order = np.argsort(gm.means_[:, 0])
+        self.means_ = gm.means_[order, 0] * self.unit_
+        self.stds_ = np.sqrt(gm.covariances_[order, 0, 0]) * self.unit_
+        self.weights_ = gm.weights_[order].copy()
+        self.warnings_ = []
+        return self._inner_boundaries(kept)
 
     def _inner_boundaries(self, kept: np.ndarray) -> list[float]:
         K = self.n_components_
@@ -348,6 +393,7 @@ class GMMBounds:
             "betas": [float(v) for v in self.betas_],
             "boundaries": [float(v) for v in self.boundaries_],
             "bic": {str(k): float(v) for k, v in sorted(self.bic_.items())},
+            "placeable": {str(k): bool(v) for k, v in sorted(self.placeable_.items())},
             "means": [float(v) for v in self.means_],
             "stds": [float(v) for v in self.stds_],
             "weights": [float(v) for v in self.weights_],

@@ -50,6 +50,7 @@ from .registry import MethodSpecification
 Preset = Literal["auto", "paper", "cpu", "tiny"]
 BoundsSource = Literal["wide", "auto", "none"]
 BoundsMethod = Literal["gmm", "quantile", "bayes"]
+BoundsKRule = Literal["bic", "bic-valleys"]
 BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
@@ -176,6 +177,14 @@ class TrainConfig(RunConfig):
             (GMM of SPEC §4) or ``none`` (no SDF).
         bounds_method: GMM boundary rule for automatic bounds: ``gmm`` (paper, SPEC §4),
             ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
+        bounds_max_materials: automatic bounds try K = 1..this (paper 4; None = the preset's:
+            paper and tiny 4, cpu 6).
+        bounds_k_rule: how automatic bounds pick K: ``bic`` (paper: the lowest BIC) or
+            ``bic-valleys`` (the lowest BIC among K whose boundaries are all valleys of the
+            mixture density; None = the preset's: cpu bic-valleys, else bic).
+        bounds_min_std: the GMM components' smallest standard deviation, as a fraction of
+            the 99.5th-percentile attenuation (0 = sklearn's default regulariser; None = the
+            preset's: 0 in every preset). Keeps a TV-flattened material from taking a spike component.
         bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
             (the paper: a trained NeAS-1M model, SPEC §4) or a classical reconstruction
             of the training views (``fdk``, ``sart``, ``asd-pocs``, ...: no prior training;
@@ -191,6 +200,9 @@ class TrainConfig(RunConfig):
     bounds: Optional[str] = None
     bounds_source: BoundsSource = "auto"
     bounds_method: BoundsMethod = "gmm"
+    bounds_max_materials: Optional[int] = None
+    bounds_k_rule: Optional[BoundsKRule] = None
+    bounds_min_std: Optional[float] = None
     bounds_volume: Optional[BoundsVolume] = None
     reuse_prior: bool = True
     reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)

@@ -153,3 +153,64 @@ def test_empty_prior_model_is_a_clear_error():
         GMMBounds(air_threshold=0.5).fit(np.random.default_rng(0).uniform(0, 0.4, 1000))
     with pytest.raises(KneasError, match="not fitted"):
         GMMBounds().to_dict()
+
+
+# ------------------------------------------------ K on a regularised reconstruction
+TV_LEVELS = (0.15, 0.30, 0.50, 0.80)
+
+
+def tv_like_volume(seed=0, n=60000):
+    """Values of a TV-regularised reconstruction: the largest material flattened into a
+    spike (std 2e-4) on its textured shoulder, three more materials, partial-volume voxels."""
+    rng = np.random.default_rng(seed)
+    parts = [0.15 + rng.normal(0, 2e-4, int(0.35 * n)), rng.normal(0.15, 0.015, int(0.15 * n)),
+             rng.normal(0.30, 0.02, int(0.30 * n)), rng.normal(0.50, 0.03, int(0.12 * n)),
+             rng.normal(0.80, 0.05, int(0.05 * n)), rng.uniform(0.02, 0.8, int(0.03 * n))]
+    return rng.permutation(np.concatenate(parts))
+
+
+def test_paper_rule_on_a_tv_volume_misses_a_material():
+    """The failure the cpu preset's rule exists for: the spike takes components, BIC stops
+    at K = 3 and one boundary lies past the 0.5 material (which then has no label)."""
+    gb = GMMBounds(max_components=6).fit(tv_like_volume())
+    inner = gb.boundaries_[1:-1]
+    between = [lo < b < hi for b, (lo, hi) in zip(inner, zip(TV_LEVELS, TV_LEVELS[1:]))]
+    assert gb.n_components_ < len(TV_LEVELS) or not all(between)
+
+
+def test_min_std_and_valley_rule_find_every_material_of_a_tv_volume():
+    gb = GMMBounds(max_components=6, min_std=0.02, k_rule="bic-valleys").fit(tv_like_volume())
+    assert gb.n_components_ == len(TV_LEVELS)
+    inner = gb.boundaries_[1:-1]
+    for b, lo, hi in zip(inner, TV_LEVELS, TV_LEVELS[1:]):
+        assert lo + 0.03 < b < hi - 0.03, (np.round(gb.boundaries_, 3), TV_LEVELS)
+    assert not gb.warnings_
+    assert gb.placeable_[gb.n_components_] is True
+    assert any(v is False for v in gb.placeable_.values())  # a lower-BIC K was skipped: no valley
+    d = gb.to_dict()
+    assert d["settings"]["k_rule"] == "bic-valleys" and d["settings"]["min_std"] == 0.02
+    assert d["placeable"][str(gb.n_components_)] is True
+
+
+def test_valley_rule_does_not_split_a_skewed_material():
+    rng = np.random.default_rng(1)
+    values = np.concatenate([0.2 + rng.gamma(2.0, 0.02, 40000), rng.normal(0.7, 0.03, 10000)])
+    bic = GMMBounds(max_components=6).fit(values)
+    assert bic.n_components_ > 2 and bic.warnings_  # BIC alone splits the skewed one, boundaries at midpoints
+    gb = GMMBounds(max_components=6, k_rule="bic-valleys").fit(values)
+    assert gb.n_components_ == 2 and not gb.warnings_
+    assert 0.35 < gb.boundaries_[1] < 0.6
+
+
+def test_valley_rule_equals_bic_when_bic_k_has_valleys(fitted):
+    values, gb = fitted
+    other = GMMBounds(k_rule="bic-valleys").fit(values)
+    assert other.n_components_ == gb.n_components_
+    np.testing.assert_allclose(other.boundaries_, gb.boundaries_)
+
+
+@pytest.mark.parametrize("kw, match", [({"k_rule": "aic"}, "K rule"), ({"min_std": -0.1}, "min_std"),
+                                       ({"min_std": 1.5}, "min_std"), ({"min_std": float("nan")}, "min_std")])
+def test_bad_k_settings_are_one_line_errors(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        GMMBounds(**kw).fit(three_materials())

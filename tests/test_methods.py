@@ -111,6 +111,26 @@ def test_cpu_preset_scores_projections_of_the_volume_unless_told_not_to():
         presets.resolve(dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, eval_projections="exact")))
 
 
+def test_cpu_preset_picks_k_by_valleys_unless_told_otherwise():
+    c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    cpu = presets.resolve(c)
+    assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std) == (6, "bic-valleys", 0.0)
+    assert any(note.startswith("materials: K = 1..6") for note in presets.procedure_notes(cpu))
+    for name in ("paper", "tiny"):  # the paper's K = 1..4 by BIC, sklearn's default regulariser
+        other = presets.resolve(dataclasses.replace(c, preset=name))
+        assert (other.bounds_max_materials, other.bounds_k_rule, other.bounds_min_std) == (4, "bic", 0.0)
+        assert not any(note.startswith("materials:") for note in presets.procedure_notes(other))
+    told = presets.resolve(dataclasses.replace(c, bounds_max_materials=4, bounds_k_rule="bic", bounds_min_std=0.0))
+    assert (told.bounds_max_materials, told.bounds_k_rule, told.bounds_min_std) == (4, "bic", 0.0)  # the user wins
+    assert not any(note.startswith("materials:") for note in presets.procedure_notes(told))
+    with pytest.raises(ConfigError, match="bounds-max-materials"):
+        presets.resolve(dataclasses.replace(c, bounds_max_materials=0))
+    with pytest.raises(ConfigError, match="bounds-min-std"):
+        presets.resolve(dataclasses.replace(c, bounds_min_std=2.0))
+    with pytest.raises(ConfigError, match="bounds_k_rule"):
+        presets.resolve(dataclasses.replace(c, bounds_k_rule="aic"))
+
+
 def test_auto_preset_says_why(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     name, reason = presets.choose("auto")

@@ -99,7 +99,7 @@ def dry_run(config) -> int:
         k_note = ""
         if presets.k_from_data(config):
             k_note = (" (method default; K is read from the bounds file at training time)" if config.bounds else
-                      " (method default; K is chosen by BIC at training time, --num-materials K fixes it)")
+                      " (method default; K is chosen from the bounds volume at training time, --num-materials K fixes it)")
         print(f"model: field={m.field} encoding={m.encoding} attenuation={m.attenuation} selector={m.selector} K={model.num_materials}{k_note} floater={'on' if m.floater else 'off'} bounds={config.bounds or config.bounds_source}")
     else:
         print(f"model: field={m.field} encoding={m.encoding} (no surfaces)")

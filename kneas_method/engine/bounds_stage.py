@@ -203,17 +203,21 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
             raise ConfigError(f"bounds volume {config.bounds_volume!r} was not computed; this is a bug in the pipeline")
         what = config.bounds_volume.upper()
     t0 = time.perf_counter()
-    gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method).fit(volume)
+    gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
+                    max_components=int(config.bounds_max_materials), k_rule=config.bounds_k_rule,
+                    min_std=float(config.bounds_min_std)).fit(volume)
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
-    chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else "(BIC: " + ", ".join(f"K={k}: {v:.4g}" for k, v in sorted(gmm.bic_.items())) + ")")
+    rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
+    chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else f"({rule}: " + ", ".join(
+        f"K={k}: {v:.4g}" + ("" if gmm.placeable_.get(k, True) else " no valley") for k, v in sorted(gmm.bic_.items())) + ")")
     gmm.plot(Path(run_dir) / "figures" / "gmm_bounds.png", title=f"{scene.name}: GMM attenuation bounds ({config.bounds_method}), K = {gmm.n_components_}")
     mu_needed = _line_integral_check(gmm, scene, what)
     for w in gmm.warnings_:
         say(f"[yellow]bounds warning:[/] {w}")
     say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} {what} voxel values, {chosen}; "
         f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
-    details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else "bic",
+    details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else config.bounds_k_rule,
                "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,
                "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
     return BoundsResult([float(v) for v in gmm.alphas_], [float(v) for v in gmm.betas_], int(gmm.n_components_),
