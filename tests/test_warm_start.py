@@ -10,6 +10,7 @@ import torch
 from kneas_method import presets, registry
 from kneas_method.data.naf import load_naf
 from kneas_method.engine.evaluate import sample_volume
+from kneas_method.engine.loading import load_run
 from kneas_method.engine.trainer import Trainer
 from kneas_method.errors import ConfigError, KneasError
 from kneas_method.evaluation.metrics import psnr3d
@@ -97,7 +98,8 @@ def test_presets_fill_and_check_the_options():
     paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
     assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("asd-pocs", "asd-pocs") and cpu.trainer.warm_start_steps > 0
     assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
-    assert len(presets.procedure_notes(cpu)) == 6 and presets.procedure_notes(paper) == []
+    assert len(presets.procedure_notes(cpu)) == 7 and presets.procedure_notes(paper) == []
+    assert (cpu.model.quadrature, paper.model.quadrature) == ("voxel-planes", "bins")
     assert (cpu.trainer.warm_start_anchor, paper.trainer.warm_start_anchor) == (0.01, 0.0)
     cpu_cfg = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cold = dataclasses.replace(cpu_cfg, trainer=dataclasses.replace(cpu_cfg.trainer, warm_start="none"))
@@ -173,10 +175,13 @@ def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path
     ASD-POCS's, and metrics.json says so."""
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),
                           "--bounds-volume", "sart", "--trainer.warm-start", "asd-pocs", "--trainer.warm-start-steps", "20",
-                          "--reconstruction.iterations", "2"], capsys)
+                          "--reconstruction.iterations", "2", "--model.quadrature", "voxel-planes"], capsys)
     assert code == 0, err
     assert "GMM is fitted on the SART reconstruction" in out and "fitting the model to the ASD-POCS reconstruction" in out
+    assert "quadrature: one sample where each ray crosses each voxel-centre plane" in out
     run_dir = run_dir_of(out)
+    loaded = load_run(run_dir)  # the voxel grid travels in the checkpoint; the rendered evaluation used it
+    assert loaded.model.quadrature == "voxel-planes" and loaded.model.voxel_count.tolist() == [24, 24, 24]
     bounds = json.loads((run_dir / "bounds.json").read_text())
     assert bounds["volume"] == "sart" and "SART" in bounds["source"]
     for name in ("sart", "asd-pocs"):

@@ -118,6 +118,10 @@ class Trainer:
         self.model = CTModel(config.model, scale=scene.geometry.scale, device=self.device).to(self.device)
         if bounds is not None:
             self.model.set_bounds(*bounds)
+        if self.model.quadrature == "voxel-planes":
+            from ..occupancy import box_of
+
+            self.model.set_voxel_grid(scene.geometry.n_voxel, *box_of(scene.geometry))
         self.datamanager = config.datamanager.setup(scene=scene, device=self.device, seed=seed)
         self.steps_per_epoch = self.datamanager.steps_per_epoch
         self.total_steps = self.epochs * self.steps_per_epoch
