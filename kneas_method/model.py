@@ -85,7 +85,7 @@ class ModelConfig(InstantiateConfig):
             placeholders (NeAS wide bounds for K = 1) until ``set_bounds``.
         ray_sampler: ``kneas.samplers`` name of the ray sampler.
         num_samples / num_eval_samples: points per ray in training (stratified,
-            jittered) / evaluation (even); paper 320 / 128.
+            jittered) / evaluation (even) with the ``bins`` quadrature; paper 320 / 128.
         floater: use the floater loss on air rays.
         floater_fraction: fraction of epochs with the floater loss on (0.2).
         lambda_floater, lambda_eikonal: ``λ_aux`` (0.1), ``λ_reg`` (paper 0.01; None =
