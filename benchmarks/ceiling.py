@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+from run_rows import run_rows
 
 
 def ceiling(run_dir: Path, steps: int) -> dict:
@@ -60,16 +59,7 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=1500, help="Adam steps of the fit to the exact volume (default 1500)")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
-    rows = []
-    for run in args.runs:
-        t0 = time.perf_counter()
-        row = ceiling(run, args.steps)
-        row["wall_s"] = round(time.perf_counter() - t0, 1)
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"machine": f"{platform.machine()} {platform.system()}", "rows": rows}, indent=2))
+    run_rows(args.runs, lambda run: ceiling(run, args.steps), args.out)
     return 0
 
 

@@ -23,14 +23,12 @@ Seconds per run, no training. Not part of the test suite.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import platform
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+from run_rows import run_rows
 
 SIGMAS = (0.35, 0.5, 0.75, 1.0)
 
@@ -94,16 +92,7 @@ def main(argv=None) -> int:
     p.add_argument("runs", nargs="+", type=Path, help="run folders written by kneas-train on built-in scenes")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
-    rows = []
-    for run in args.runs:
-        t0 = time.perf_counter()
-        row = run_anatomy(run)
-        row["wall_s"] = round(time.perf_counter() - t0, 1)
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"machine": f"{platform.machine()} {platform.system()}", "rows": rows}, indent=2))
+    run_rows(args.runs, run_anatomy, args.out)
     return 0
 
 
