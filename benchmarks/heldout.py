@@ -14,8 +14,10 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object
   (not piecewise constant: TV's weak case), projected with the Joseph projector, with noise.
 
-Written pickles keep the ground-truth volume (PSNR/SSIM) but not the labels of the head
-phantom, which is not built in (per-material Dice only in memory, via ``classical.py``).
+Written pickles keep the ground-truth volume and labels (PSNR/SSIM and, through ``kneas-eval``,
+per-material Dice against the mean level of each label), but not the material names or the exact
+membership of the head phantom, which is not built in (no Chamfer; ``classical.py`` with a
+``heldout:NAME`` scene simulates it in memory and has both).
 """
 
 from __future__ import annotations

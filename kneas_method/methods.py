@@ -94,6 +94,12 @@ class TrainerConfig:
             field instead of the step noise; the projections still decide where they disagree.
             0 = off; None = the preset's (paper 0; cpu 0.01). Needs ``warm_start``.
         anchor_points: voxel centres per step of that prior.
+        anchor_occupancy: weight, inside the anchor, of the warm start's per-material occupancy
+            cross-entropy (``CTModel.occupancy_loss``): the prior keeps the labels the volume's
+            values give under the bounds, not only its values. Where two materials' ranges meet
+            near a level (a ventricle at 0.154 beside a boundary at 0.163), the projections
+            cannot tell which material holds it and the MSE alone lets the neighbour take it.
+            0 = the MSE alone.
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -115,6 +121,7 @@ class TrainerConfig:
     warm_start_occupancy: float = 0.01
     warm_start_anchor: Optional[float] = None
     anchor_points: int = 4096
+    anchor_occupancy: float = 0.0
     log_every: int = 50
     max_bad_steps: int = 5
 

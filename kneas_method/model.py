@@ -398,15 +398,25 @@ class CTModel(nn.Module):
             q = self.query(points)
         out = {"volume": torch.mean((q["mu"] - targets) ** 2)}
         if occupancy_weight > 0 and self.has_surfaces:
-            alphas, betas = self.attenuation.alphas, self.attenuation.betas
-            thresholds = torch.cat([alphas[:1] / 2, betas[1:]]).to(targets.dtype)
-            reached = (targets[:, None] > thresholds[None, :]).to(targets.dtype)
-            logits = -self.boundary.s * q["distances"]
-            out["occupancy"] = occupancy_weight * F.binary_cross_entropy_with_logits(logits, reached)
+            out["occupancy"] = occupancy_weight * self.occupancy_loss(q["distances"], targets)
         if self.eikonal is not None:
             out["eikonal"] = self.lambda_eikonal * self.eikonal(self.field.distances, points, q.get("distances"), grads=q.get("grads"))
         out["total"] = sum(out.values())
         return out
+
+    def occupancy_loss(self, distances: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """Mean binary cross-entropy between each material's occupancy ``Omega(d_k, s)`` and
+        "the target attenuation reaches material k" (``target > beta_k``; for k = 1,
+        ``> alpha_1 / 2``): the labels a volume's values give under the model's bounds.
+
+        Args:
+            distances: ``[P, K]`` signed distances (model units) at the points.
+            targets: ``[P]`` attenuation there (data units).
+        """
+        alphas, betas = self.attenuation.alphas, self.attenuation.betas
+        thresholds = torch.cat([alphas[:1] / 2, betas[1:]]).to(targets.dtype)
+        reached = (targets[:, None] > thresholds[None, :]).to(targets.dtype)
+        return F.binary_cross_entropy_with_logits(-self.boundary.s * distances, reached)
 
     def loss_dict(self, batch: dict[str, Any], progress: float, generator: Optional[torch.Generator] = None) -> dict[str, torch.Tensor]:
         """Weighted loss terms and ``total`` for one training batch.

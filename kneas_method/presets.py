@@ -155,9 +155,10 @@ def resolve(config: RunConfig) -> RunConfig:
         raise ConfigError(f"trainer.warm_start_steps must be a whole number >= 0, got {trainer.warm_start_steps!r}")
     if not (isinstance(trainer.warm_start_points, int) and trainer.warm_start_points >= 1):
         raise ConfigError(f"trainer.warm_start_points must be a whole number >= 1, got {trainer.warm_start_points!r}")
-    if not (isinstance(trainer.warm_start_occupancy, (int, float)) and not isinstance(trainer.warm_start_occupancy, bool)
-            and math.isfinite(trainer.warm_start_occupancy) and trainer.warm_start_occupancy >= 0):
-        raise ConfigError(f"trainer.warm_start_occupancy must be a number >= 0, got {trainer.warm_start_occupancy!r}")
+    for weight in ("warm_start_occupancy", "anchor_occupancy"):
+        value = getattr(trainer, weight)
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
+            raise ConfigError(f"trainer.{weight} must be a number >= 0, got {value!r}")
     anchor = trainer.warm_start_anchor
     if not (isinstance(anchor, (int, float)) and not isinstance(anchor, bool) and math.isfinite(anchor) and anchor >= 0):
         raise ConfigError(f"trainer.warm_start_anchor must be a number >= 0, got {anchor!r}")

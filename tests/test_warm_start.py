@@ -79,6 +79,54 @@ def test_anchor_loss_is_the_weighted_mse_to_the_prior_volume(small_scene, tmp_pa
     assert trainer.anchor is None
 
 
+def test_occupancy_loss_scores_the_labels_the_values_give(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    model = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7])).model
+    targets = torch.tensor([0.1, 0.3, 0.5, 0.9])  # thresholds 0.2 (alpha_1 / 2), 0.4, 0.7: reach 0, 1, 2, 3 materials
+    reached = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1]], dtype=torch.bool)
+    right = torch.where(reached, -0.2, 0.2)  # inside (d < 0) exactly where the value reaches the material
+    with torch.no_grad():
+        good, bad = float(model.occupancy_loss(right, targets)), float(model.occupancy_loss(-right, targets))
+        one_wrong = right.clone()
+        one_wrong[2, 1] = 0.2  # the 0.5 voxel left out of material 2
+        assert good < float(model.occupancy_loss(one_wrong, targets)) < bad
+
+
+def test_anchor_with_occupancy_adds_the_label_term(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    target = np.asarray(scene.image, dtype=np.float32)
+    trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    trainer.set_anchor(target, weight=0.5, points_per_step=300, occupancy_weight=0.3)
+    draw = torch.Generator().manual_seed(0)
+    draw.set_state(trainer.generator.get_state())
+    idx = torch.randint(0, target.size, (300,), generator=draw)
+    points = scene.geometry.voxel_centres().reshape(-1, 3)[idx]
+    values = torch.as_tensor(target).reshape(-1)[idx]
+    with torch.no_grad():
+        q = trainer.model.query(points)
+        mse = torch.mean((q["mu"] - values) ** 2)
+        labels = trainer.model.occupancy_loss(q["distances"], values)
+        assert float(labels) > 0
+        assert float(trainer.anchor_loss()) == pytest.approx(float(0.5 * (mse + 0.3 * labels)), rel=1e-6)
+
+
+def test_anchor_occupancy_keeps_the_prior_volume_labels(small_scene, tmp_path):
+    from kneas_method.evaluation.surfaces import labels_from_weights, query_grid
+
+    scene = load_naf(small_scene)
+    target = np.asarray(scene.image, dtype=np.float32)
+    bounds = ([0.4, 0.3, 0.4], [0.0, 0.4, 0.7])
+    prior_labels = (target > 0.2).astype(int) + (target > 0.4) + (target > 0.7)
+    agree = {}
+    for occupancy in (0.0, 1.0):
+        trainer = Trainer(_tiny_config(epochs=20), scene, tmp_path / str(occupancy), epochs=20, device="cpu", bounds=bounds)
+        trainer.set_anchor(target, weight=100.0, points_per_step=2048, occupancy_weight=occupancy)
+        trainer.train()
+        labels = labels_from_weights(query_grid(trainer.model, scene.geometry, keys=("weights",))["weights"])
+        agree[occupancy] = float(np.mean(labels == prior_labels))
+    assert agree[1.0] > agree[0.0] + 0.02, agree
+
+
 def test_anchor_holds_the_field_near_the_prior_during_projection_training(small_scene, tmp_path):
     scene = load_naf(small_scene)
     target = np.asarray(scene.image, dtype=np.float32)
@@ -108,6 +156,8 @@ def test_presets_fill_and_check_the_options():
         presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, warm_start_anchor=0.1)))
     with pytest.raises(ConfigError, match="warm_start_anchor"):
         _tiny_config(warm_start="fdk", warm_start_anchor=-1.0)
+    with pytest.raises(ConfigError, match="anchor_occupancy"):
+        _tiny_config(anchor_occupancy=float("nan"))
     with pytest.raises(ConfigError, match="warm_start"):
         _tiny_config(warm_start="gt")
     with pytest.raises(ConfigError, match="bounds_volume"):

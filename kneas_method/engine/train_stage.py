@@ -58,8 +58,10 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
         say(f"{label}: warm start done in {seconds:.1f} s")
     anchor = float(config.trainer.warm_start_anchor or 0.0)
     if warm is not None and anchor > 0:
-        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points))
-        say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, {config.trainer.anchor_points:,} voxel centres per step "
+        occupancy = float(config.trainer.anchor_occupancy)
+        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy)
+        labels = f", its labels too (occupancy weight {occupancy:g})" if occupancy > 0 and trainer.model.has_surfaces else ""
+        say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior{labels}, weight {anchor:g}, {config.trainer.anchor_points:,} voxel centres per step "
             "(--trainer.warm-start-anchor 0 trains on the projections alone)")
     say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
     trainer.train()

@@ -138,7 +138,7 @@ class Trainer:
         self.warm_start_time_s = 0.0
         self.last_checkpoint: Optional[Path] = None
         self.complete = False
-        self.anchor: Optional[tuple[torch.Tensor, torch.Tensor, float, int]] = None
+        self.anchor: Optional[tuple[torch.Tensor, torch.Tensor, float, int, float]] = None
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -287,21 +287,27 @@ class Trainer:
         self.warm_start_time_s = time.perf_counter() - started
         return self.warm_start_time_s
 
-    def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int) -> None:
+    def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0) -> None:
         """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
-        prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none."""
+        prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none;
+        ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models)."""
         if weight <= 0:
             self.anchor = None
             return
         points, targets = self._voxel_targets(volume, "prior")
-        self.anchor = (points, targets, float(weight), int(points_per_step))
+        self.anchor = (points, targets, float(weight), int(points_per_step), float(occupancy_weight))
 
     def anchor_loss(self) -> torch.Tensor:
-        """``weight`` x the MSE between ``mu`` and the prior volume at ``points_per_step`` voxel
-        centres drawn with the run's loss generator (so a resumed run draws the same ones)."""
-        points, targets, weight, n = self.anchor
+        """``weight`` x (the MSE between ``mu`` and the prior volume + ``occupancy_weight`` x the
+        per-material occupancy cross-entropy, ``CTModel.occupancy_loss``) at ``points_per_step``
+        voxel centres drawn with the run's loss generator (so a resumed run draws the same ones)."""
+        points, targets, weight, n, occupancy_weight = self.anchor
         idx = torch.randint(0, len(points), (min(n, len(points)),), generator=self.generator).to(self.device)
-        return weight * torch.mean((self.model.query(points[idx])["mu"] - targets[idx]) ** 2)
+        q = self.model.query(points[idx])
+        loss = torch.mean((q["mu"] - targets[idx]) ** 2)
+        if occupancy_weight > 0 and self.model.has_surfaces:
+            loss = loss + occupancy_weight * self.model.occupancy_loss(q["distances"], targets[idx])
+        return weight * loss
 
     # ----------------------------------------------------------------- loop
     def train(self, on_step: Optional[Callable[[int], None]] = None) -> None:
