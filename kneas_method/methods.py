@@ -99,7 +99,9 @@ class TrainerConfig:
             values give under the bounds, not only its values. Where two materials' ranges meet
             near a level (a ventricle at 0.154 beside a boundary at 0.163), the projections
             cannot tell which material holds it and the MSE alone lets the neighbour take it.
-            0 = the MSE alone.
+            Only the labels two voxels or more from any other label count
+            (``engine.anchor.label_interior``): at the volume's blurred edges its labels are
+            wrong, and there the projections decide. 0 = the MSE alone.
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).

@@ -404,19 +404,30 @@ class CTModel(nn.Module):
         out["total"] = sum(out.values())
         return out
 
-    def occupancy_loss(self, distances: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    def label_thresholds(self) -> torch.Tensor:
+        """``[K]`` the attenuation each material's label starts at (data units): ``beta_k``,
+        and for k = 1 ``alpha_1 / 2`` (half way from air to the first material's top)."""
+        alphas, betas = self.attenuation.alphas, self.attenuation.betas
+        return torch.cat([alphas[:1] / 2, betas[1:]])
+
+    def occupancy_loss(self, distances: torch.Tensor, targets: torch.Tensor,
+                       mask: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Mean binary cross-entropy between each material's occupancy ``Omega(d_k, s)`` and
-        "the target attenuation reaches material k" (``target > beta_k``; for k = 1,
-        ``> alpha_1 / 2``): the labels a volume's values give under the model's bounds.
+        "the target attenuation reaches material k" (``target >`` :meth:`label_thresholds`):
+        the labels a volume's values give under the model's bounds.
 
         Args:
             distances: ``[P, K]`` signed distances (model units) at the points.
             targets: ``[P]`` attenuation there (data units).
+            mask: ``[P]`` bool, the points whose labels count (the mean is over them;
+                none: 0); ``None`` = every point.
         """
-        alphas, betas = self.attenuation.alphas, self.attenuation.betas
-        thresholds = torch.cat([alphas[:1] / 2, betas[1:]]).to(targets.dtype)
+        thresholds = self.label_thresholds().to(targets.dtype)
         reached = (targets[:, None] > thresholds[None, :]).to(targets.dtype)
-        return F.binary_cross_entropy_with_logits(-self.boundary.s * distances, reached)
+        bce = F.binary_cross_entropy_with_logits(-self.boundary.s * distances, reached, reduction="none")
+        if mask is None:
+            return bce.mean()
+        return (bce * mask[:, None].to(bce.dtype)).sum() / (mask.sum().clamp(min=1) * bce.shape[-1])
 
     def loss_dict(self, batch: dict[str, Any], progress: float, generator: Optional[torch.Generator] = None) -> dict[str, torch.Tensor]:
         """Weighted loss terms and ``total`` for one training batch.

@@ -6,9 +6,11 @@ import json
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from kneas_method import presets, registry
 from kneas_method.data.naf import load_naf
+from kneas_method.engine.anchor import label_interior
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.engine.loading import load_run
 from kneas_method.engine.trainer import Trainer
@@ -92,11 +94,13 @@ def test_occupancy_loss_scores_the_labels_the_values_give(small_scene, tmp_path)
         assert good < float(model.occupancy_loss(one_wrong, targets)) < bad
 
 
-def test_anchor_with_occupancy_adds_the_label_term(small_scene, tmp_path):
+def test_anchor_with_occupancy_adds_the_label_term_away_from_the_edges(small_scene, tmp_path):
     scene = load_naf(small_scene)
     target = np.asarray(scene.image, dtype=np.float32)
     trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
     trainer.set_anchor(target, weight=0.5, points_per_step=300, occupancy_weight=0.3)
+    interior = label_interior(target, [0.2, 0.4, 0.7]).reshape(-1)
+    assert np.array_equal(trainer.anchor.label_mask.numpy(), interior) and 0 < interior.mean() < 1
     draw = torch.Generator().manual_seed(0)
     draw.set_state(trainer.generator.get_state())
     idx = torch.randint(0, target.size, (300,), generator=draw)
@@ -105,25 +109,78 @@ def test_anchor_with_occupancy_adds_the_label_term(small_scene, tmp_path):
     with torch.no_grad():
         q = trainer.model.query(points)
         mse = torch.mean((q["mu"] - values) ** 2)
-        labels = trainer.model.occupancy_loss(q["distances"], values)
+        labels = trainer.model.occupancy_loss(q["distances"], values, mask=torch.as_tensor(interior)[idx])
         assert float(labels) > 0
         assert float(trainer.anchor_loss()) == pytest.approx(float(0.5 * (mse + 0.3 * labels)), rel=1e-6)
+    trainer.set_anchor(target, weight=0.5, points_per_step=300)
+    assert trainer.anchor.label_mask is None  # no label term, no mask
+
+
+def test_occupancy_loss_mask_averages_over_the_masked_points_only(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    model = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7])).model
+    gen = torch.Generator().manual_seed(3)
+    distances, targets = torch.randn(50, 3, generator=gen) * 0.1, torch.rand(50, generator=gen)
+    mask = torch.rand(50, generator=gen) > 0.5
+    with torch.no_grad():
+        whole = float(model.occupancy_loss(distances, targets))
+        assert float(model.occupancy_loss(distances, targets, mask=torch.ones(50, dtype=torch.bool))) == pytest.approx(whole, rel=1e-6)
+        assert float(model.occupancy_loss(distances, targets, mask=mask)) == pytest.approx(
+            float(model.occupancy_loss(distances[mask], targets[mask])), rel=1e-6)
+        assert float(model.occupancy_loss(distances, targets, mask=torch.zeros(50, dtype=torch.bool))) == 0.0
+
+
+def _label_interior_naive(volume, thresholds, margin):
+    labels = np.digitize(volume, thresholds)
+    out = np.zeros(volume.shape, dtype=bool)
+    X, Y, Z = volume.shape
+    for x in range(X):
+        for y in range(Y):
+            for z in range(Z):
+                cube = labels[max(0, x - margin):x + margin + 1, max(0, y - margin):y + margin + 1, max(0, z - margin):z + margin + 1]
+                out[x, y, z] = bool(np.all(cube == labels[x, y, z]))
+    return out
+
+
+@pytest.mark.parametrize("margin", [0, 1, 2])
+def test_label_interior_matches_the_naive_neighbourhood_check(margin):
+    rng = np.random.default_rng(margin)
+    volume = ndimage.zoom(rng.random((4, 5, 3)), 6, order=0)  # blocks of one label, edges between them
+    thresholds = [0.3, 0.6]
+    got = label_interior(volume, thresholds, margin)
+    assert np.array_equal(got, _label_interior_naive(volume, thresholds, margin))
+    assert got.all() == (margin == 0) and got.any()
+
+
+def test_label_interior_keeps_a_sphere_two_voxels_in_from_its_surface():
+    grid = np.indices((21, 21, 21)) - 10
+    radius = np.sqrt((grid ** 2).sum(0))
+    volume = np.where(radius <= 6, 0.5, 0.0)
+    kept = label_interior(volume, [0.25])
+    assert kept[radius <= 2.5].all() and not kept[(radius > 5) & (radius <= 6)].any()
+    assert kept[radius >= 9.5].all()  # the air two voxels out is kept too
 
 
 def test_anchor_occupancy_keeps_the_prior_volume_labels(small_scene, tmp_path):
     from kneas_method.evaluation.surfaces import labels_from_weights, query_grid
 
     scene = load_naf(small_scene)
-    target = np.asarray(scene.image, dtype=np.float32)
+    # a prior with materials thick enough to have voxels two away from their edges (the
+    # 24^3 phantom's are not): two nested cubes (labels 1, 2) in air under the bounds below
+    prior = np.full(np.shape(scene.image), 0.05, dtype=np.float32)
+    for lo, hi, value in ((3, 21, 0.3), (8, 16, 0.55)):
+        prior[lo:hi, lo:hi, lo:hi] = value
     bounds = ([0.4, 0.3, 0.4], [0.0, 0.4, 0.7])
-    prior_labels = (target > 0.2).astype(int) + (target > 0.4) + (target > 0.7)
+    prior_labels = np.digitize(prior, [0.2, 0.4, 0.7])
+    trusted = label_interior(prior, [0.2, 0.4, 0.7])
+    assert all(np.any(trusted & (prior_labels == k)) for k in range(3))
     agree = {}
     for occupancy in (0.0, 1.0):
         trainer = Trainer(_tiny_config(epochs=20), scene, tmp_path / str(occupancy), epochs=20, device="cpu", bounds=bounds)
-        trainer.set_anchor(target, weight=100.0, points_per_step=2048, occupancy_weight=occupancy)
+        trainer.set_anchor(prior, weight=100.0, points_per_step=2048, occupancy_weight=occupancy)
         trainer.train()
         labels = labels_from_weights(query_grid(trainer.model, scene.geometry, keys=("weights",))["weights"])
-        agree[occupancy] = float(np.mean(labels == prior_labels))
+        agree[occupancy] = float(np.mean(labels[trusted] == prior_labels[trusted]))
     assert agree[1.0] > agree[0.0] + 0.02, agree
 
 

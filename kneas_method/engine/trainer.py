@@ -33,6 +33,7 @@ import torch
 
 from ..errors import KneasError
 from ..evaluation.metrics import psnr2d
+from .anchor import Anchor, label_interior
 from .checkpoint import load_latest_checkpoint, save_checkpoint
 from .progress import format_losses, stage_progress
 
@@ -138,7 +139,7 @@ class Trainer:
         self.warm_start_time_s = 0.0
         self.last_checkpoint: Optional[Path] = None
         self.complete = False
-        self.anchor: Optional[tuple[torch.Tensor, torch.Tensor, float, int, float]] = None
+        self.anchor: Optional[Anchor] = None
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -290,24 +291,30 @@ class Trainer:
     def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0) -> None:
         """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
         prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none;
-        ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models)."""
+        ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models), only where
+        they are trusted: :func:`~.anchor.label_interior`, away from the volume's edges."""
         if weight <= 0:
             self.anchor = None
             return
         points, targets = self._voxel_targets(volume, "prior")
-        self.anchor = (points, targets, float(weight), int(points_per_step), float(occupancy_weight))
+        mask = None
+        if occupancy_weight > 0 and self.model.has_surfaces:
+            thresholds = self.model.label_thresholds().detach().cpu().numpy()
+            mask = torch.as_tensor(label_interior(np.clip(volume, 0.0, None), thresholds).reshape(-1), device=self.device)
+        self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask)
 
     def anchor_loss(self) -> torch.Tensor:
         """``weight`` x (the MSE between ``mu`` and the prior volume + ``occupancy_weight`` x the
-        per-material occupancy cross-entropy, ``CTModel.occupancy_loss``) at ``points_per_step``
-        voxel centres drawn with the run's loss generator (so a resumed run draws the same ones)."""
-        points, targets, weight, n, occupancy_weight = self.anchor
-        idx = torch.randint(0, len(points), (min(n, len(points)),), generator=self.generator).to(self.device)
-        q = self.model.query(points[idx])
-        loss = torch.mean((q["mu"] - targets[idx]) ** 2)
-        if occupancy_weight > 0 and self.model.has_surfaces:
-            loss = loss + occupancy_weight * self.model.occupancy_loss(q["distances"], targets[idx])
-        return weight * loss
+        per-material occupancy cross-entropy on its trusted labels, ``CTModel.occupancy_loss``) at
+        ``points_per_step`` voxel centres drawn with the run's loss generator (so a resumed run
+        draws the same ones)."""
+        a = self.anchor
+        idx = torch.randint(0, len(a.points), (min(a.points_per_step, len(a.points)),), generator=self.generator).to(self.device)
+        q = self.model.query(a.points[idx])
+        loss = torch.mean((q["mu"] - a.targets[idx]) ** 2)
+        if a.label_mask is not None:
+            loss = loss + a.occupancy_weight * self.model.occupancy_loss(q["distances"], a.targets[idx], mask=a.label_mask[idx])
+        return a.weight * loss
 
     # ----------------------------------------------------------------- loop
     def train(self, on_step: Optional[Callable[[int], None]] = None) -> None:
