@@ -101,7 +101,8 @@ class TrainerConfig:
             cannot tell which material holds it and the MSE alone lets the neighbour take it.
             Only the labels two voxels or more from any other label count
             (``engine.anchor.label_interior``): at the volume's blurred edges its labels are
-            wrong, and there the projections decide. 0 = the MSE alone.
+            wrong, and there the projections decide. 0 = the MSE alone; None = the preset's
+            (paper 0; cpu 0.03).
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -123,7 +124,7 @@ class TrainerConfig:
     warm_start_occupancy: float = 0.01
     warm_start_anchor: Optional[float] = None
     anchor_points: int = 4096
-    anchor_occupancy: float = 0.0
+    anchor_occupancy: Optional[float] = None
     log_every: int = 50
     max_bad_steps: int = 5
 

@@ -36,7 +36,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0},
+                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
@@ -58,13 +58,17 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # 37.43 -> 37.62, foot 38.79 -> 38.56, jaw 40.66 -> 40.13 (README "Presets"). The voxel-planes
     # quadrature (--model.quadrature voxel-planes) stays an option: +0.0-0.2 dB on the built-in scenes,
     # but twice the samples and -0.25 dB on a head that fills the box (README "Presets").
+    # The anchor keeps the ASD-POCS volume's labels too, where they are trusted (>= 2 voxels from
+    # any other label; anchor occupancy 0.03): a material whose level sits near a boundary
+    # (head-256's ventricles) keeps its label, ventricle Dice 0.00 -> 0.93; 0.01 did not keep it,
+    # 0.1 cost chest's blood (README "Presets").
     "cpu": {
         "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
                   "occupancy_grid": True, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
         "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
-                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01},
+                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 6, "bounds_k_rule": "bic-valleys", "bounds_min_std": 0.0},
     },
     "tiny": {
@@ -73,7 +77,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0},
+                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0},
     },
 }
@@ -167,6 +171,11 @@ def resolve(config: RunConfig) -> RunConfig:
     elif anchor > 0 and trainer.warm_start == "none":
         raise ConfigError("trainer.warm_start_anchor keeps the warm-start volume as a prior, but warm_start is none; "
                           "give --trainer.warm-start asd-pocs (or another method) or --trainer.warm-start-anchor 0")
+    if not trainer.warm_start_anchor and config.trainer.anchor_occupancy is None:
+        trainer = dataclasses.replace(trainer, anchor_occupancy=0.0)  # no anchor, no labels in it
+    elif trainer.anchor_occupancy and not trainer.warm_start_anchor:
+        raise ConfigError("trainer.anchor_occupancy weighs the warm-start volume's labels inside the anchor, but there is no anchor "
+                          "(warm_start_anchor 0); give --trainer.warm-start-anchor 0.01 or leave --trainer.anchor-occupancy out")
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}
@@ -210,7 +219,10 @@ def procedure_notes(config: TrainConfig) -> list[str]:
                      f"{config.trainer.warm_start_steps} steps (not in the paper; --trainer.warm-start none trains from the initialisation)")
     if config.trainer.warm_start != "none" and config.trainer.warm_start_anchor:
         notes.append(f"anchor: during projection training the field is also pulled towards the {config.trainer.warm_start.upper()} "
-                     f"volume (weight {config.trainer.warm_start_anchor:g}; not in the paper; --trainer.warm-start-anchor 0 turns it off)")
+                     f"volume (weight {config.trainer.warm_start_anchor:g}"
+                     + (f", and to its labels away from its edges, weight {config.trainer.anchor_occupancy:g} inside it"
+                        if config.trainer.anchor_occupancy and field_has_surfaces(config.model) else "")
+                     + "; not in the paper; --trainer.warm-start-anchor 0 turns it off)")
     if config.trainer.eval_projections == "volume":
         notes.append("evaluation: 2D metrics on the held-out views projected from the volume at the voxel centres (Joseph projector, "
                      "as for the classical methods), not rendered through the field (--trainer.eval-projections rendered for the paper's)")

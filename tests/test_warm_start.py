@@ -208,7 +208,13 @@ def test_presets_fill_and_check_the_options():
     assert (cpu.trainer.warm_start_anchor, paper.trainer.warm_start_anchor) == (0.01, 0.0)
     cpu_cfg = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cold = dataclasses.replace(cpu_cfg, trainer=dataclasses.replace(cpu_cfg.trainer, warm_start="none"))
-    assert presets.resolve(cold).trainer.warm_start_anchor == 0.0  # no warm-start volume: no anchor, no error
+    assert (cpu.trainer.anchor_occupancy, paper.trainer.anchor_occupancy) == (0.03, 0.0)
+    assert "its labels away from its edges, weight 0.03" in " ".join(presets.procedure_notes(cpu))
+    resolved_cold = presets.resolve(cold)
+    assert (resolved_cold.trainer.warm_start_anchor, resolved_cold.trainer.anchor_occupancy) == (0.0, 0.0)  # no anchor, no error
+    assert presets.resolve(resolved_cold) == resolved_cold  # a saved run's config resolves to itself
+    with pytest.raises(ConfigError, match="no anchor"):
+        presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, anchor_occupancy=0.1)))
     with pytest.raises(ConfigError, match="warm_start is none"):
         presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, warm_start_anchor=0.1)))
     with pytest.raises(ConfigError, match="warm_start_anchor"):
@@ -225,9 +231,11 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     outdir = tmp_path / "out"
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(outdir),
                           "--bounds-volume", "fdk", "--trainer.warm-start", "fdk", "--trainer.warm-start-steps", "20",
-                          "--bounds-k-rule", "bic-valleys", "--bounds-max-materials", "5", "--bounds-min-std", "0.03"], capsys)
+                          "--bounds-k-rule", "bic-valleys", "--bounds-max-materials", "5", "--bounds-min-std", "0.03",
+                          "--trainer.warm-start-anchor", "0.01", "--trainer.anchor-occupancy", "0.03"], capsys)
     assert code == 0, err
     assert "GMM is fitted on the FDK reconstruction" in out and "warm start: the model is first fitted" in out
+    assert "model: anchor: the FDK volume kept as a prior, weight 0.01, 4,096 voxel centres per step, and its labels away from its edges, weight 0.03" in out
     assert "materials: K = 1..5 by the lowest BIC whose boundaries are all density valleys" in out
     assert "lowest BIC with every boundary a density valley" in out
     assert "prior: training" not in out and "on the FDK" in out and "model: warm start done" in out
