@@ -60,11 +60,12 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
     if warm is not None and anchor > 0:
         occupancy = float(config.trainer.anchor_occupancy)
         trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy)
-        labels = occupancy > 0 and trainer.model.has_surfaces
-        say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, {config.trainer.anchor_points:,} voxel centres per step"
-            + (f", and its labels away from its edges, weight {occupancy:g} inside it (--trainer.anchor-occupancy 0 keeps its values only; "
-               if labels else " (")
-            + "--trainer.warm-start-anchor 0 trains on the projections alone)")
+        labels, hints = "", ["--trainer.warm-start-anchor 0 trains on the projections alone"]
+        if occupancy > 0 and trainer.model.has_surfaces:
+            labels = f", and its labels away from its edges, weight {occupancy:g} inside it"
+            hints.insert(0, "--trainer.anchor-occupancy 0 keeps its values only")
+        say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, "
+            f"{config.trainer.anchor_points:,} voxel centres per step{labels} ({'; '.join(hints)})")
     say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
     trainer.train()
     return trainer
