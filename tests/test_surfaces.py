@@ -70,6 +70,36 @@ def test_matching_with_more_and_fewer_materials():
     assert map_labels(pred, [1, 1, 2, 3]).tolist() == [0, 1, 1, 2, 3]
 
 
+def test_a_material_nearest_air_is_air():
+    """A near-air material (the partial-volume shell just outside the object) is air, not the
+    lowest tissue: its voxels count as air and it has no surface of its own."""
+    levels = [0.28, 0.5, 0.9]
+    assert match_materials([0.059, 0.3, 0.9], levels) == [0, 1, 3]
+    assert match_materials([0.15, 0.3], levels) == [1, 1]  # nearer 0.28 than 0: tissue
+    pred = np.array([0, 1, 2, 3], dtype=np.uint8)
+    assert map_labels(pred, [0, 1, 3]).tolist() == [0, 0, 1, 3]
+
+
+def test_a_near_air_shell_does_not_count_as_tissue(scene):
+    """Two materials: the outer one is turned into a thin low-attenuation shell around the sphere;
+    with air a candidate, the inner material alone is scored against the outer label."""
+    from kneas_method.evaluation.surfaces import _score_materials
+
+    gt = np.asarray(scene.labels)
+    inside = gt > 0
+    # a shell of one voxel around the object, labelled as a predicted material of mu ~ 0.02
+    from scipy.ndimage import binary_dilation
+
+    shell = binary_dilation(inside) & ~inside
+    pred = np.where(shell, 1, np.where(gt == 1, 2, np.where(gt == 2, 3, 0))).astype(np.uint8)
+    levels = gt_levels(scene)
+    r = _score_materials(scene, pred, np.array([0.02, levels[0], levels[1]]), None, fine=2, definition="", settings={})
+    assert [m["gt_label"] for m in r["matching"]] == [0, 1, 2]
+    assert r["matching"][0]["gt_name"] == "air"
+    assert r["materials"]["soft"]["dice"] == pytest.approx(1.0)
+    assert r["materials"]["bone"]["dice"] == pytest.approx(1.0)
+
+
 def test_visible_fields_is_the_csg_of_the_selector():
     d = np.array([[-1.0, 0.5, 2.0],    # only material 1 inside -> 1 visible
                   [-1.0, -0.5, 2.0],   # 1 and 2 inside -> 2 covers 1

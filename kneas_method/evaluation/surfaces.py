@@ -15,15 +15,19 @@ or 0 (air) where the total weight ``Σ_k w_k`` is below ``air_threshold`` (0.5).
 
 **Matching predicted materials to ground-truth labels.** K (model) and M
 (ground truth) may differ, so each predicted material ``k`` is assigned to the
-ground-truth label ``m in 1..M`` whose attenuation level (data units; the
-phantom's levels, or the mean ground-truth image over each label) is nearest to
-the material's *mean predicted attenuation*: the mean of the model's ``mu`` over
+ground-truth label ``m in 0..M`` whose attenuation level (data units; air, label
+0, at 0; the phantom's levels, or the mean ground-truth image over each label)
+is nearest to the material's *mean predicted attenuation*: the mean of the model's ``mu`` over
 the voxels labelled ``k`` (what it reconstructs where material ``k`` wins; for
 the hard selector ``mu_1 Omega(d_1)`` this differs from the raw head value), or,
 when no voxel is, the mean of the raw head ``mu_materials[:, k]`` over the
 voxels where ``w_k`` is largest among materials, or else over all voxels. Several predicted
 materials may map to one ground-truth label (their regions are merged); a
-ground-truth label no material maps to gets Dice 0 and no predicted surface.
+ground-truth label no material maps to gets Dice 0 and no predicted surface. A
+material whose mean attenuation is nearest air's is air: its voxels count as
+air and it has no surface (a model may hold the partial-volume voxels just
+outside the object, a tenth of the lowest tissue's level, in a material of its
+own; scoring them as that tissue would call air tissue).
 The report also holds the overlap (Dice) matrix of every predicted material
 with every ground-truth label, so other matchings can be read off it.
 
@@ -209,15 +213,19 @@ def material_mean_attenuation(mu_materials: np.ndarray, weights: np.ndarray, lab
     return out
 
 
+AIR_LEVEL = 0.0  # the attenuation of air (label 0), data units
+
+
 def match_materials(mean_mu: Sequence[float], levels: Sequence[float]) -> list[int]:
-    """Ground-truth label (1..M) for each predicted material: the nearest level."""
-    lv = np.asarray(levels, dtype=np.float64)
+    """Ground-truth label for each predicted material ``[K]``: the one (0 = air at
+    ``AIR_LEVEL``, 1..M at ``levels [M]``) whose level is nearest its mean attenuation."""
+    lv = np.concatenate([[AIR_LEVEL], np.asarray(levels, dtype=np.float64)])
     lv = np.where(np.isfinite(lv), lv, np.inf)
-    return [int(np.argmin(np.abs(lv - float(m)))) + 1 for m in mean_mu]
+    return [int(np.argmin(np.abs(lv - float(m)))) for m in mean_mu]
 
 
 def map_labels(pred_labels: np.ndarray, matching: Sequence[int]) -> np.ndarray:
-    """Predicted labels 0..K -> ground-truth labels 0..M through ``matching``."""
+    """Predicted labels 0..K -> ground-truth labels 0..M through ``matching`` (0 = air)."""
     lut = np.concatenate([[0], np.asarray(matching, dtype=np.int64)]).astype(np.uint8)
     return lut[pred_labels]
 
@@ -330,7 +338,7 @@ def material_metrics(
         return visible_fields(query_grid(model, fgeo, keys=("distances",), chunk=chunk)["distances"])
 
     definition = ("labels: 1+argmax weight, air where total weight < air_threshold; predicted material k -> GT label with the "
-                  "nearest attenuation level to the mean predicted attenuation mu where it is the label; surfaces: visible-region SDF "
+                  "nearest attenuation level (air at 0 included) to the mean predicted attenuation mu where it is the label; surfaces: visible-region SDF "
                   "e_k = max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm")
     settings = {"air_threshold": float(air_threshold), "grid_factor": int(factor)}
     return _score_materials(scene, pred, mean_mu, visible if surfaces else None, fine=factor, definition=definition,
@@ -385,7 +393,7 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
                         for k in range(K)])
     fields = threshold_fields(vol, boundaries, air_cut)
     definition = (f"labels: thresholds at the GMM bounds fitted on the volume (K = 1..{max_components} by {k_rule}, min_std {min_std:g}), air below half the lowest class mean; "
-                  "class k -> GT label with the nearest attenuation level to the class's mean mu; surfaces: iso-surfaces of the "
+                  "class k -> GT label with the nearest attenuation level (air at 0 included) to the class's mean mu; surfaces: iso-surfaces of the "
                   "thresholds (marching cubes on the voxel grid) vs exact membership on a grid refined by 2, mm")
     settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_),
                 "gmm": {"max_components": max_components, "k_rule": k_rule, "min_std": min_std}}
@@ -423,7 +431,7 @@ def _score_materials(scene, pred: np.ndarray, mean_mu: np.ndarray, fields, *, fi
         "fscore_threshold_mm": voxel_mm,
         "gt_levels": [float(v) for v in levels],
         "matching": [{"material": k + 1, "mean_mu": float(mean_mu[k]), "gt_label": int(matching[k]),
-                      "gt_name": names[matching[k] - 1]} for k in range(K)],
+                      "gt_name": names[matching[k] - 1] if matching[k] else "air"} for k in range(K)],
         "dice_matrix": _dice_matrix(pred, gt, K, M),
         "materials": per,
     }
