@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
-                    "by BIC), and under dice_valleys the same with the cpu preset's K rule (presets.TABLE['cpu'])")
+                    "by BIC), and under dice_valleys the same with the cpu preset's K rule and GMM starts (presets.TABLE['cpu'])")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)
@@ -135,7 +135,8 @@ def main(argv=None) -> int:
                 row["chamfer_mm_mean"] = mm.get("chamfer_mm_mean")
                 cpu = TABLE["cpu"]["run"]  # the K rule the cpu preset gives k-neas, from its one definition
                 mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=cpu["bounds_k_rule"],
-                                             min_std=cpu["bounds_min_std"], surfaces=scene.membership is not None)
+                                             min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"],
+                                             surfaces=scene.membership is not None)
                 row["dice_valleys"] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
                 row["dice_mean_valleys"] = mv["dice_mean"]
                 row["chamfer_mm_mean_valleys"] = mv.get("chamfer_mm_mean")

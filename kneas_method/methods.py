@@ -195,6 +195,9 @@ class TrainConfig(RunConfig):
         bounds_min_std: the GMM components' smallest standard deviation, as a fraction of
             the 99.5th-percentile attenuation (0 = sklearn's default regulariser; None = the
             preset's: 0 in every preset). Keeps a TV-flattened material from taking a spike component.
+        bounds_gmm_restarts: k-means starts per GMM fit, the best kept (scikit-learn's ``n_init``;
+            paper and tiny 1, cpu 3; None = the preset's). One start can end in a poor local
+            optimum whose BIC then misjudges K.
         bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
             (the paper: a trained NeAS-1M model, SPEC §4) or a classical reconstruction
             of the training views (``fdk``, ``sart``, ``asd-pocs``, ...: no prior training;
@@ -213,6 +216,7 @@ class TrainConfig(RunConfig):
     bounds_max_materials: Optional[int] = None
     bounds_k_rule: Optional[BoundsKRule] = None
     bounds_min_std: Optional[float] = None
+    bounds_gmm_restarts: Optional[int] = None
     bounds_volume: Optional[BoundsVolume] = None
     reuse_prior: bool = True
     reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)

@@ -37,7 +37,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
                     "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0},
-        "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0},
+        "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
     # (finest resolution ~168 for the built-in 128^3 volumes), 256 + 64 rays x 64
@@ -69,7 +69,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
         "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
                     "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03},
-        "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 6, "bounds_k_rule": "bic-valleys", "bounds_min_std": 0.0},
+        "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "bic-valleys", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },
     "tiny": {
         "hashgrid": {"num_levels": 3, "features_per_level": 2, "log2_hashmap_size": 10, "base_resolution": 4, "per_level_scale": 2.0},
@@ -78,7 +78,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
                     "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0},
-        "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0},
+        "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
 }
 
@@ -185,6 +185,9 @@ def resolve(config: RunConfig) -> RunConfig:
     min_std = run["bounds_min_std"]
     if not (isinstance(min_std, (int, float)) and not isinstance(min_std, bool) and math.isfinite(min_std) and 0 <= min_std < 1):
         raise ConfigError(f"--bounds-min-std must be a fraction in [0, 1) of the 99.5th-percentile attenuation, got {min_std!r}")
+    restarts = run["bounds_gmm_restarts"]
+    if not (isinstance(restarts, int) and not isinstance(restarts, bool) and restarts >= 1):
+        raise ConfigError(f"--bounds-gmm-restarts must be a whole number >= 1, got {restarts!r}")
     return dataclasses.replace(
         config,
         preset=name,
@@ -205,14 +208,17 @@ def procedure_notes(config: TrainConfig) -> list[str]:
         notes.append(f"bounds: the GMM is fitted on the {config.bounds_volume.upper()} reconstruction, not on a trained NeAS-1M prior "
                      "(an option beside the paper's procedure; --bounds-volume prior for the paper's)")
     if k_from_data(config) and automatic_bounds(config) and (
-            config.bounds_max_materials != 4 or config.bounds_k_rule != "bic" or config.bounds_min_std):
+            config.bounds_max_materials != 4 or config.bounds_k_rule != "bic" or config.bounds_min_std
+            or config.bounds_gmm_restarts != 1):
         notes.append(f"materials: K = 1..{config.bounds_max_materials} by "
                      + ("the lowest BIC whose boundaries are all density valleys" if config.bounds_k_rule == "bic-valleys" else "BIC")
                      + (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")
+                     + (f", the best of {config.bounds_gmm_restarts} GMM starts" if config.bounds_gmm_restarts != 1 else "")
                      + " (the paper: K = 1..4 by BIC; " + " ".join(
                          flag for flag, differs in (("--bounds-max-materials 4", config.bounds_max_materials != 4),
                                                     ("--bounds-k-rule bic", config.bounds_k_rule != "bic"),
-                                                    ("--bounds-min-std 0", bool(config.bounds_min_std))) if differs)
+                                                    ("--bounds-min-std 0", bool(config.bounds_min_std)),
+                                                    ("--bounds-gmm-restarts 1", config.bounds_gmm_restarts != 1)) if differs)
                      + " for the paper's)")
     if config.trainer.warm_start != "none" and config.trainer.warm_start_steps:
         notes.append(f"warm start: the model is first fitted to the {config.trainer.warm_start.upper()} reconstruction for "

@@ -209,6 +209,21 @@ def test_valley_rule_equals_bic_when_bic_k_has_valleys(fitted):
     np.testing.assert_allclose(other.boundaries_, gb.boundaries_)
 
 
+def test_restarts_keep_a_low_contrast_material_one_start_merges():
+    """Six materials, three of them 0.04 apart (abdomen's muscle, liver, kidney): from one
+    k-means start the K = 6 mixture lands in a poor optimum and BIC keeps K = 5 (two of the
+    close materials in one component); the best of three starts has all six."""
+    rng = np.random.default_rng(0)
+    levels, weights = [0.15, 0.25, 0.29, 0.33, 0.5, 0.85], [0.35, 0.2, 0.15, 0.05, 0.15, 0.1]
+    values = np.concatenate([rng.normal(v, 0.012, int(20000 * w)) for v, w in zip(levels, weights)])
+    one = GMMBounds(max_components=8, k_rule="bic-valleys").fit(values)
+    assert one.n_components_ == 5
+    best = GMMBounds(max_components=8, k_rule="bic-valleys", n_init=3).fit(values)
+    assert best.n_components_ == 6 and not best.warnings_
+    np.testing.assert_allclose(best.means_, levels, atol=0.005)
+    assert all(lo < v < hi for v, lo, hi in zip(levels, best.boundaries_[:-1], best.boundaries_[1:]))
+
+
 @pytest.mark.parametrize("kw, match", [({"k_rule": "aic"}, "K rule"), ({"min_std": -0.1}, "min_std"),
                                        ({"min_std": 1.5}, "min_std"), ({"min_std": float("nan")}, "min_std")])
 def test_bad_k_settings_are_one_line_errors(kw, match):

@@ -114,15 +114,18 @@ def test_cpu_preset_scores_projections_of_the_volume_unless_told_not_to():
 def test_cpu_preset_picks_k_by_valleys_unless_told_otherwise():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cpu = presets.resolve(c)
-    assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std) == (6, "bic-valleys", 0.0)
-    assert any(note.startswith("materials: K = 1..6") for note in presets.procedure_notes(cpu))
-    for name in ("paper", "tiny"):  # the paper's K = 1..4 by BIC, sklearn's default regulariser
+    assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std, cpu.bounds_gmm_restarts) == (8, "bic-valleys", 0.0, 3)
+    note = next(n for n in presets.procedure_notes(cpu) if n.startswith("materials:"))
+    assert note.startswith("materials: K = 1..8") and "the best of 3 GMM starts" in note and "--bounds-gmm-restarts 1" in note
+    for name in ("paper", "tiny"):  # the paper's K = 1..4 by BIC, sklearn's default regulariser, one start
         other = presets.resolve(dataclasses.replace(c, preset=name))
-        assert (other.bounds_max_materials, other.bounds_k_rule, other.bounds_min_std) == (4, "bic", 0.0)
+        assert (other.bounds_max_materials, other.bounds_k_rule, other.bounds_min_std, other.bounds_gmm_restarts) == (4, "bic", 0.0, 1)
         assert not any(note.startswith("materials:") for note in presets.procedure_notes(other))
-    told = presets.resolve(dataclasses.replace(c, bounds_max_materials=4, bounds_k_rule="bic", bounds_min_std=0.0))
-    assert (told.bounds_max_materials, told.bounds_k_rule, told.bounds_min_std) == (4, "bic", 0.0)  # the user wins
+    told = presets.resolve(dataclasses.replace(c, bounds_max_materials=4, bounds_k_rule="bic", bounds_min_std=0.0, bounds_gmm_restarts=1))
+    assert (told.bounds_max_materials, told.bounds_k_rule, told.bounds_min_std, told.bounds_gmm_restarts) == (4, "bic", 0.0, 1)  # the user wins
     assert not any(note.startswith("materials:") for note in presets.procedure_notes(told))
+    with pytest.raises(ConfigError, match="bounds-gmm-restarts"):
+        presets.resolve(dataclasses.replace(c, bounds_gmm_restarts=0))
     with pytest.raises(ConfigError, match="bounds-max-materials"):
         presets.resolve(dataclasses.replace(c, bounds_max_materials=0))
     with pytest.raises(ConfigError, match="bounds-min-std"):

@@ -231,12 +231,12 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     outdir = tmp_path / "out"
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(outdir),
                           "--bounds-volume", "fdk", "--trainer.warm-start", "fdk", "--trainer.warm-start-steps", "20",
-                          "--bounds-k-rule", "bic-valleys", "--bounds-max-materials", "5", "--bounds-min-std", "0.03",
+                          "--bounds-k-rule", "bic-valleys", "--bounds-max-materials", "5", "--bounds-min-std", "0.03", "--bounds-gmm-restarts", "2",
                           "--trainer.warm-start-anchor", "0.01", "--trainer.anchor-occupancy", "0.03"], capsys)
     assert code == 0, err
     assert "GMM is fitted on the FDK reconstruction" in out and "warm start: the model is first fitted" in out
     assert "model: anchor: the FDK volume kept as a prior, weight 0.01, 4,096 voxel centres per step, and its labels away from its edges, weight 0.03" in out
-    assert "materials: K = 1..5 by the lowest BIC whose boundaries are all density valleys" in out
+    assert "materials: K = 1..5 by the lowest BIC whose boundaries are all density valleys" in out and "the best of 2 GMM starts" in out
     assert "lowest BIC with every boundary a density valley" in out
     assert "prior: training" not in out and "on the FDK" in out and "model: warm start done" in out
     run_dir = run_dir_of(out)
@@ -244,7 +244,7 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     bounds = json.loads((run_dir / "bounds.json").read_text())
     assert bounds["volume"] == "fdk" and "FDK" in bounds["source"] and bounds["prior_run"] is None
     assert bounds["k_chosen_by"] == "bic-valleys" and sorted(bounds["gmm"]["bic"]) == ["1", "2", "3", "4", "5"]
-    assert (bounds["gmm"]["settings"]["k_rule"], bounds["gmm"]["settings"]["min_std"]) == ("bic-valleys", 0.03)
+    assert (bounds["gmm"]["settings"]["k_rule"], bounds["gmm"]["settings"]["min_std"], bounds["gmm"]["settings"]["n_init"]) == ("bic-valleys", 0.03, 2)
     assert bounds["gmm"]["placeable"][str(bounds["K"])] is True and not bounds["warnings"]
     fdk = np.load(run_dir / "fdk_volume.npy")
     assert fdk.shape == (24, 24, 24) and np.isfinite(fdk).all()

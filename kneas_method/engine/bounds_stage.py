@@ -203,9 +203,11 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
             raise ConfigError(f"bounds volume {config.bounds_volume!r} was not computed; this is a bug in the pipeline")
         what = config.bounds_volume.upper()
     t0 = time.perf_counter()
+    say(f"bounds: fitting Gaussian mixtures ({'K = ' + str(K) if K is not None else f'K = 1..{config.bounds_max_materials}'}, "
+        f"{config.bounds_gmm_restarts} start(s) each) to the {what} voxel values", markup=False)
     gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
                     max_components=int(config.bounds_max_materials), k_rule=config.bounds_k_rule,
-                    min_std=float(config.bounds_min_std)).fit(volume)
+                    min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(volume)
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
@@ -215,7 +217,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     mu_needed = _line_integral_check(gmm, scene, what)
     for w in gmm.warnings_:
         say(f"[yellow]bounds warning:[/] {w}")
-    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} {what} voxel values, {chosen}; "
+    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} {what} voxel values in {time.perf_counter() - t0:.0f} s, {chosen}; "
         f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
     details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else config.bounds_k_rule,
                "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,

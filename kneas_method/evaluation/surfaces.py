@@ -369,12 +369,12 @@ def threshold_fields(volume, boundaries: Sequence[float], air_cut: float) -> np.
 
 
 def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int = 4, k_rule: str = "bic", min_std: float = 0.0,
-                            surfaces: bool = True) -> dict[str, Any]:
+                            restarts: int = 1, surfaces: bool = True) -> dict[str, Any]:
     """Per-material Dice and surface errors of a voxel volume [nx, ny, nz] (data units; a
     classical reconstruction or a NAF field sampled at the voxel centres), segmented the way a
     user would: thresholds at the automatic GMM bounds fitted on the volume itself
     (:class:`~kneas_method.bounds.GMMBounds`, K up to ``max_components`` by ``k_rule``, components
-    at least ``min_std`` wide; the defaults are the paper's rule), air below half
+    at least ``min_std`` wide, the best of ``restarts`` starts; the defaults are the paper's rule), air below half
     the lowest class mean. Classes are matched to ground-truth labels like a model's materials;
     surfaces are the iso-surfaces of the thresholds (marching cubes of :func:`threshold_fields`
     on the voxel grid). Same keys as :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
@@ -384,7 +384,8 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     vol = np.asarray(volume, dtype=np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the GMM's remarks are kept in the result's notes
-        gmm = GMMBounds(random_state=int(seed), max_components=max_components, k_rule=k_rule, min_std=min_std).fit(vol)
+        gmm = GMMBounds(random_state=int(seed), max_components=max_components, k_rule=k_rule, min_std=min_std,
+                        n_init=int(restarts)).fit(vol)
     boundaries = [float(x) for x in gmm.boundaries_]
     air_cut = 0.5 * float(gmm.means_[0])
     pred = threshold_labels(vol, boundaries, air_cut)
@@ -392,11 +393,12 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     mean_mu = np.array([float(vol[pred == k + 1].mean()) if (pred == k + 1).any() else float(gmm.means_[k])
                         for k in range(K)])
     fields = threshold_fields(vol, boundaries, air_cut)
-    definition = (f"labels: thresholds at the GMM bounds fitted on the volume (K = 1..{max_components} by {k_rule}, min_std {min_std:g}), air below half the lowest class mean; "
+    definition = (f"labels: thresholds at the GMM bounds fitted on the volume (K = 1..{max_components} by {k_rule}, min_std {min_std:g}, "
+                  f"{restarts} start(s)), air below half the lowest class mean; "
                   "class k -> GT label with the nearest attenuation level (air at 0 included) to the class's mean mu; surfaces: iso-surfaces of the "
                   "thresholds (marching cubes on the voxel grid) vs exact membership on a grid refined by 2, mm")
     settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_),
-                "gmm": {"max_components": max_components, "k_rule": k_rule, "min_std": min_std}}
+                "gmm": {"max_components": max_components, "k_rule": k_rule, "min_std": min_std, "restarts": int(restarts)}}
     return _score_materials(scene, pred, mean_mu, (lambda fgeo: fields) if surfaces else None, fine=2,
                             definition=definition, settings=settings, field_geometry=scene.geometry)
 
