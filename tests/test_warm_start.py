@@ -250,7 +250,9 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     assert fdk.shape == (24, 24, 24) and np.isfinite(fdk).all()
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["warm_start"] == "fdk" and metrics["classical_volume"] == "fdk" and metrics["warm_start_time_s"] > 0 and metrics["classical_time_s"] > 0
-    parts = metrics["train_time_s"] + metrics["warm_start_time_s"] + metrics["classical_time_s"] + metrics["eval_time_s"] + metrics["prior_time_s"]
+    assert metrics["bounds_time_s"] == pytest.approx(bounds["fit_time_s"]) and metrics["bounds_time_s"] > 0
+    parts = (metrics["train_time_s"] + metrics["warm_start_time_s"] + metrics["classical_time_s"] + metrics["bounds_time_s"]
+             + metrics["eval_time_s"] + metrics["prior_time_s"])
     assert metrics["wall_time_s"] == pytest.approx(parts)
     # the same data and schedule from scratch: the warm start must not be worse on the volume
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"),

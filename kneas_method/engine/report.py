@@ -16,7 +16,8 @@ from .progress import _duration, summary_table
 from .run_dir import write_json
 
 # (metrics key, label) of the stages, in the order they run
-STAGES = (("prior_time_s", "prior"), ("classical_time_s", "classical volume"), ("reconstruct_time_s", "reconstruction"),
+STAGES = (("prior_time_s", "prior"), ("classical_time_s", "classical volume"), ("bounds_time_s", "bounds"),
+          ("reconstruct_time_s", "reconstruction"),
           ("warm_start_time_s", "warm start"), ("train_time_s", "training"), ("eval_time_s", "evaluation"))
 
 
@@ -65,10 +66,12 @@ def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classi
     out, facts = _common(config, scene, evaluation, device)
     per_view = facts.pop("_per_view")
     prior_time = bounds.prior_wall_time_s if bounds is not None else 0.0
+    bounds_time = float(bounds.details.get("fit_time_s", 0.0)) if bounds is not None else 0.0  # the GMM fit
     out.update(parameters=trainer.model.num_parameters(), steps=trainer.step, epochs=trainer.epochs,
-               wall_time_s=trainer.wall_time_s + trainer.warm_start_time_s + prior_time + classical_time_s + evaluation.seconds,
+               wall_time_s=trainer.wall_time_s + trainer.warm_start_time_s + prior_time + classical_time_s + bounds_time
+               + evaluation.seconds,
                train_time_s=trainer.wall_time_s, warm_start_time_s=trainer.warm_start_time_s, warm_start=config.trainer.warm_start,
-               prior_time_s=prior_time, classical_time_s=classical_time_s, classical_volume=classical_volume,
+               prior_time_s=prior_time, classical_time_s=classical_time_s, bounds_time_s=bounds_time, classical_volume=classical_volume,
                eval_time_s=evaluation.seconds, **facts, bad_steps=len(trainer.bad_steps))
     if trainer.model.has_surfaces:
         out["num_materials"] = int(trainer.model.num_materials)
