@@ -52,7 +52,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # can hold material (~0.8 voxel spacing instead of 2-3 voxels): 34.7 -> 38.5 dB on foot;
     # the ASD-POCS volume kept as a prior during projection training (anchor 0.01): foot 38.8,
     # chest 35.9 -> 37.4 dB; and the final 2D metrics on the held-out views projected from the
-    # model's volume (Joseph), 7 s instead of 1 min 21 s on foot. Materials: K = 1..6, the lowest
+    # model's volume (Joseph), 7 s instead of 1 min 21 s on foot. Materials: K = 1..6 (first), the lowest
     # BIC among K whose boundaries are all density valleys (the paper: 1..4 by BIC, which chose
     # K = 3 on abdomen and left bone without a material): abdomen 37.16 -> 39.17 dB, chest
     # 37.43 -> 37.62, foot 38.79 -> 38.56, jaw 40.66 -> 40.13 (README "Presets"). The voxel-planes
@@ -61,7 +61,9 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # The anchor keeps the ASD-POCS volume's labels too, where they are trusted (>= 2 voxels from
     # any other label; anchor occupancy 0.03): a material whose level sits near a boundary
     # (head-256's ventricles) keeps its label, ventricle Dice 0.00 -> 0.93; 0.01 did not keep it,
-    # 0.1 cost chest's blood (README "Presets").
+    # 0.1 cost chest's blood (README "Presets"). Then K = 1..8, each mixture the best of 3 k-means
+    # starts: one start misjudged K on abdomen and merged kidney with liver (kidney Dice 0 -> 0.89,
+    # abdomen 39.28 -> 39.58 dB, foot 38.65 -> 38.87, the other five scenes within 0.01 dB).
     "cpu": {
         "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
