@@ -29,5 +29,5 @@ def missing_optional(package: str, extra: str, purpose: str) -> KneasError:
     """Error for an optional dependency that is not installed."""
     return KneasError(
         f"{purpose} needs the optional package '{package}', which is not installed; "
-        f"install it with: pip install 'kneas[{extra}]'"
+        f"install it with: pip install 'kneas[{extra}]' (in a kneas checkout: pip install -e '.[{extra}]')"
     )

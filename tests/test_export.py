@@ -267,6 +267,23 @@ def test_volume_export_nifti_affine(files, tmp_path):
     assert data[2, 4, 6] == pytest.approx(float(run.model.query(pts)["mu"][0].detach()), abs=1e-5)
 
 
+def test_volume_export_without_nibabel_writes_npy_and_says_how(files, tmp_path, monkeypatch, capsys):
+    import sys
+
+    from kneas_method.export.volume import export_volume
+
+    monkeypatch.setitem(sys.modules, "nibabel", None)  # import nibabel now raises ImportError
+    out = tmp_path / "vol"
+    assert _cli(["volume", str(files["kneas"]), "-o", str(out), "--no-mha"]) == 0
+    printed = capsys.readouterr().out
+    assert (out / "attenuation.npy").exists() and (out / "labels.npy").exists()
+    assert not list(out.glob("*.nii.gz"))
+    assert "no NIfTI files" in printed and "pip install -e '.[nifti]'" in printed
+    # asked for explicitly, NIfTI without nibabel is a one-line error naming the extra
+    with pytest.raises(KneasError, match=r"nibabel.*pip install 'kneas\[nifti\]'"):
+        export_volume(load_run(files["kneas"]), tmp_path / "v2", nifti=True, mha=False)
+
+
 def test_affine_with_origin_offset(files):
     import dataclasses
 

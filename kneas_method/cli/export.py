@@ -119,7 +119,7 @@ def _volume(args) -> int:
 
     run = _load(args)
     out = output_folder(run.run_dir, args.output, "export")
-    info = export_volume(run, out, thresholds=args.threshold, nifti=not args.no_nifti, chunk=args.chunk,
+    info = export_volume(run, out, thresholds=args.threshold, nifti=False if args.no_nifti else None, chunk=args.chunk,
                          mha=False if args.no_mha else None)
     for note in info["notes"]:
         _say(f"note: {note}")

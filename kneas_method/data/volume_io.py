@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import KneasError, SceneError
+from ..errors import KneasError, SceneError, missing_optional
 
 MU_WATER_PER_M = 20.0  # 0.2 /cm
 SUPPORTED = (".npy", ".nii", ".nii.gz", ".mat", "a DICOM series folder")
@@ -55,7 +55,7 @@ def _read_nifti(path: Path):
     try:
         import nibabel as nib
     except ImportError:
-        raise KneasError("reading NIfTI volumes needs the optional package 'nibabel', which is not installed; install it with: pip install 'kneas[nifti]'") from None
+        raise missing_optional("nibabel", "nifti", "reading NIfTI volumes") from None
     try:
         img = nib.load(str(path))
         arr = np.asarray(img.dataobj, dtype=np.float32)

@@ -97,7 +97,7 @@ def stage_times(metrics: dict) -> str:
 def next_commands(run_dir: Path, surfaces: bool) -> list[str]:
     mesh = "one surface mesh per material" if surfaces else "iso-surfaces of the attenuation (Otsu threshold)"
     return [f"kneas-export mesh {run_dir}      # {mesh}",
-            f"kneas-export volume {run_dir}    # NIfTI + .npy attenuation and label volumes",
+            f"kneas-export volume {run_dir}    # .npy attenuation and label volumes (+ NIfTI with [nifti])",
             f"kneas-export figures {run_dir}   # projections, slices, weight maps",
             f"kneas-eval {run_dir}             # re-evaluate (surface metrics on built-in scenes)"]
 

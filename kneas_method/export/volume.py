@@ -53,7 +53,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..errors import KneasError
+from ..errors import missing_optional
 
 NIFTI_UNITS = "mm"
 
@@ -95,9 +95,10 @@ def write_mha(array: np.ndarray, scene, path: Path) -> Path:
                        spacing=grid["spacing"], origin=grid["origin"], purpose="writing .mha volumes")
 
 
-def _itk_available() -> bool:
+def _importable(module: str) -> bool:
+    """Whether an optional package (``itk``, ``nibabel``) can be imported."""
     try:
-        import itk  # noqa: F401
+        __import__(module)
     except ImportError:
         return False
     return True
@@ -132,8 +133,7 @@ def write_nifti(array: np.ndarray, affine: np.ndarray, path: Path, *, descriptio
     try:
         import nibabel as nib
     except ImportError:
-        raise KneasError("writing NIfTI volumes needs the optional package 'nibabel', which is not installed; "
-                         "install it with: pip install 'kneas[nifti]'") from None
+        raise missing_optional("nibabel", "nifti", "writing NIfTI volumes") from None
     img = nib.Nifti1Image(np.asarray(array), affine)
     img.header.set_xyzt_units(xyz=NIFTI_UNITS)
     img.set_sform(affine, code=1)
@@ -144,11 +144,12 @@ def write_nifti(array: np.ndarray, affine: np.ndarray, path: Path, *, descriptio
     return Path(path)
 
 
-def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None, nifti: bool = True,
+def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None, nifti: Optional[bool] = None,
                   chunk: int = 65536, air_threshold: float = 0.5, mha: Optional[bool] = None) -> dict:
     """Write the attenuation and label volumes (NIfTI + ``.npy``, ``.mha`` when ITK is there) and ``volume.json``.
 
-    ``mha``: True requires ITK, False skips it, None (default) writes it when ITK is installed.
+    ``nifti``: True requires nibabel, False skips it, None (default) writes it when nibabel is
+    installed and otherwise says in ``notes`` how to get it. ``mha``: the same with ITK.
 
     Returns the ``volume.json`` dict (paths, shape, voxel size, origin, affine, notes).
     """
@@ -187,6 +188,10 @@ def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None,
             f"number of thresholds {sorted(float(t) for t in thresholds)} (data units) the attenuation exceeds"
     else:
         info["notes"].append(f"{run.config.method} has no materials: no label volume (give --threshold to make one)")
+    if nifti is None:
+        nifti = _importable("nibabel")
+        if not nifti:
+            info["notes"].append(f"no NIfTI files: {missing_optional('nibabel', 'nifti', 'writing NIfTI volumes')}")
     if nifti:
         write_nifti(mu.astype(np.float32), aff, out / "attenuation.nii.gz", description=f"kneas {run.config.method} mu data units")
         info["files"]["attenuation_nifti"] = str(out / "attenuation.nii.gz")
@@ -194,7 +199,7 @@ def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None,
             write_nifti(labels, aff, out / "labels.nii.gz", description=f"kneas {run.config.method} material labels")
             info["files"]["labels_nifti"] = str(out / "labels.nii.gz")
     if mha is None:
-        mha = _itk_available()
+        mha = _importable("itk")
     if mha:
         write_mha(mu.astype(np.float32), run.scene, out / "attenuation.mha")
         info["files"]["attenuation_mha"] = str(out / "attenuation.mha")
