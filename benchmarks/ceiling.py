@@ -36,7 +36,7 @@ def ceiling(run_dir: Path, steps: int) -> dict:
         raise SystemExit(f"{run_dir}: the scene has no ground-truth volume; the ceiling needs a built-in scene")
     bounds = None
     if (run_dir / "bounds.json").is_file():
-        b = json.loads((run_dir / "bounds.json").read_text())
+        b = json.loads((run_dir / "bounds.json").read_text(encoding="utf-8"))
         bounds = (b["alphas"], b["betas"])
     gt = np.asarray(scene.image, dtype=np.float32)
     with tempfile.TemporaryDirectory() as tmp:
@@ -47,7 +47,7 @@ def ceiling(run_dir: Path, steps: int) -> dict:
                                      occupancy_weight=float(config.trainer.warm_start_occupancy))
         volume = sample_volume(trainer.model, scene.geometry)
     m = volume_metrics(volume, gt)
-    run_metrics = json.loads((run_dir / "metrics.json").read_text()) if (run_dir / "metrics.json").is_file() else {}
+    run_metrics = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8")) if (run_dir / "metrics.json").is_file() else {}
     return {"run": str(run_dir), "scene": scene.name, "method": config.method, "steps": steps, "fit_seconds": round(seconds, 1),
             "ceiling_psnr3d": round(float(m["psnr3d"]), 2), "ceiling_ssim3d": round(float(m["ssim3d"]), 4),
             "run_psnr3d": run_metrics.get("psnr3d"), "run_ssim3d": run_metrics.get("ssim3d")}

@@ -159,11 +159,11 @@ def main(argv=None) -> int:
             "rows": [],
         }
         if args.append and path.is_file():
-            out = json.loads(path.read_text())
+            out = json.loads(path.read_text(encoding="utf-8"))
         out["commands"].append(command)
         out["rows"].extend(rows)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(out, indent=2) + "\n")
+        path.write_text(json.dumps(out, indent=2) + "\n", encoding="utf-8")
         print(f"wrote {path}")
     return 0
 

@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     print(f"load average (1 min) at end: {os.getloadavg()[0]:.2f}")
     out = Path(args.out) if args.out else HERE / "results" / f"quality_{args.preset}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+    out.write_text(json.dumps(result, indent=2), encoding="utf-8")
     print(f"wrote {out}")
     return 0
 

@@ -243,7 +243,7 @@ def main(argv=None) -> int:
                     "itk_threads": int(itk.MultiThreaderBase.GetGlobalDefaultNumberOfThreads()),
                     "load_average_at_end": [round(v, 2) for v in os.getloadavg()]},
     }
-    out.write_text(json.dumps(payload, indent=2))
+    out.write_text(json.dumps(payload, indent=2), encoding="utf-8")
     print(f"wrote {out}")
     return 0
 

@@ -21,5 +21,5 @@ def run_rows(runs: Sequence[Path], row_of: Callable[[Path], dict], out: Path | N
         print(json.dumps(row), flush=True)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"machine": f"{platform.machine()} {platform.system()}", "rows": rows}, indent=2))
+        out.write_text(json.dumps({"machine": f"{platform.machine()} {platform.system()}", "rows": rows}, indent=2), encoding="utf-8")
     return rows

@@ -198,7 +198,7 @@ def main(argv=None) -> int:
     tag = "" if args.preset == "paper" else f"_{args.preset}"
     out = Path(args.out) if args.out else HERE / "results" / f"step_{device.type}{tag}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+    out.write_text(json.dumps(result, indent=2), encoding="utf-8")
     print(f"wrote {out}")
     return 0
 

@@ -134,7 +134,7 @@ def load_bounds(path) -> Bounds:
     if not p.is_file():
         raise ConfigError(f"bounds file {p} does not exist; give the path of a JSON file with 'alphas' and 'betas'")
     try:
-        d = json.loads(p.read_text())
+        d = json.loads(p.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"bounds file {p} is not valid JSON ({exc.__class__.__name__}); fix or regenerate it") from None
     return _as_bounds(d)

@@ -474,7 +474,17 @@ def test_noisy_naf_pickle_loads_and_yields_batches(tmp_path):
 
 
 # --------------------------------------------------------------------------- DICOM volumes
-def test_simulate_from_a_dicom_series(tmp_path, capsys):
+@pytest.fixture
+def keep_locale():
+    """GDCM's DICOM writer sets the process locale to "C" (ASCII text files from then on); put it back."""
+    import locale
+
+    saved = locale.setlocale(locale.LC_ALL)
+    yield
+    locale.setlocale(locale.LC_ALL, saved)
+
+
+def test_simulate_from_a_dicom_series(tmp_path, capsys, keep_locale):
     hu = np.full((6, 7, 8), -1000, np.int16)  # ITK order [z, y, x]
     hu[1:5, 2:6, 2:7] = 400
     folder = tmp_path / "series"

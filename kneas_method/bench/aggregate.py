@@ -417,6 +417,6 @@ def write_tables(output_dir: str | Path, layout: str, cells: Sequence[Cell]) -> 
     per_cell = out / f"{table.name}_cells.csv"
     for path, text in ((md, to_markdown(table, groups)), (cv, to_csv(table, groups)), (per_cell, cells_csv(output_dir, cells))):
         tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8")
         tmp.replace(path)
     return table, groups, [md, cv, per_cell]

@@ -70,7 +70,7 @@ class CellResult:
 
 def _tail(path: Path, lines: int = ERROR_TAIL_LINES) -> str:
     try:
-        text = path.read_text(errors="replace")
+        text = path.read_text(encoding="utf-8", errors="replace")
     except OSError:
         return ""
     return "\n".join(text.rstrip().splitlines()[-lines:])
@@ -112,7 +112,7 @@ def run_cell(cell: Cell, output_dir: str | Path, prefix: Sequence[str] = DEFAULT
     rc: Optional[int] = None
     error: Optional[str] = None
     try:
-        with open(log, "w") as handle:
+        with open(log, "w", encoding="utf-8") as handle:
             handle.write("$ " + " ".join(cmd) + "\n")
             handle.flush()
             proc = subprocess.Popen(cmd, stdout=handle, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

@@ -237,7 +237,7 @@ def run(args: _Common) -> int:
 
             backend.run(todo, output_dir, prefix=TRAIN_PREFIX or DEFAULT_TRAIN_PREFIX, on_result=on_result)
     table, groups, paths = aggregate.write_tables(output_dir, layout, cells)
-    console.print(Path(paths[0]).read_text(), markup=False, highlight=False)
+    console.print(Path(paths[0]).read_text(encoding="utf-8"), markup=False, highlight=False)
     console.print(f"{counts['done']} cells run, {counts['failed']} failed, {len(cells) - len(todo)} skipped as complete, "
                   f"in {time.monotonic() - t0:.0f} s; tables: {', '.join(str(p) for p in paths)}")
     if counts["failed"]:

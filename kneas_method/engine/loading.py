@@ -97,7 +97,7 @@ def read_config_file(path: Union[str, Path]):
     if not path.is_file():
         raise KneasError(f"config file {path} does not exist; give the config.json of a run folder")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise KneasError(f"config file {path} is not valid JSON ({exc}); fix or regenerate it") from None
     return config_from_dict(data, str(path))
@@ -109,7 +109,7 @@ def read_run_config(run_dir: Path):
     if not path.is_file():
         raise KneasError(f"{run_dir} has no config.json, so it is not a complete kneas run folder; " + RESUME_HINT.format(run=run_dir))
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise KneasError(f"{path} is not valid JSON ({exc}); the run folder is damaged, train the run again") from None
     return config_from_dict(data, str(path))

@@ -111,7 +111,7 @@ def read_json(path: str | Path, what: str = "file") -> Any:
     if not path.is_file():
         raise KneasError(f"{what} {path} does not exist")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise KneasError(f"{what} {path} is not valid JSON ({exc}); fix or delete it") from None
 
