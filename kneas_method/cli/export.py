@@ -53,11 +53,11 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--threshold", type=float, action="append", default=None, metavar="MU",
                    help="methods without an SDF (naf, fdk): attenuation iso-level(s), data units; repeatable (default: Otsu)")
 
-    v = sub.add_parser("volume", help="attenuation and material label volumes as NIfTI (.nii.gz) and .npy")
+    v = sub.add_parser("volume", help="attenuation and material label volumes as .npy, and NIfTI (.nii.gz) when nibabel is installed")
     _common(v)
     v.add_argument("--threshold", type=float, action="append", default=None, metavar="MU",
                    help="methods without an SDF: label = number of these attenuation levels (data units) exceeded")
-    v.add_argument("--no-nifti", action="store_true", help="write no NIfTI files")
+    v.add_argument("--no-nifti", action="store_true", help="write no NIfTI files (written when nibabel is installed: pip install 'kneas[nifti]')")
     v.add_argument("--no-mha", action="store_true", help="write no .mha files (written when ITK is installed: pip install 'kneas[scanner]')")
 
     f = sub.add_parser("figures", help="projection, slice, weight and label figures (PNG)")

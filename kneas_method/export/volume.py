@@ -1,4 +1,4 @@
-"""Reconstructed volumes of a run (``kneas-export volume``): NIfTI and ``.npy``.
+"""Reconstructed volumes of a run (``kneas-export volume``): ``.npy``, and NIfTI when nibabel is installed.
 
 Files written (``out_dir``):
 
@@ -146,7 +146,7 @@ def write_nifti(array: np.ndarray, affine: np.ndarray, path: Path, *, descriptio
 
 def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None, nifti: Optional[bool] = None,
                   chunk: int = 65536, air_threshold: float = 0.5, mha: Optional[bool] = None) -> dict:
-    """Write the attenuation and label volumes (NIfTI + ``.npy``, ``.mha`` when ITK is there) and ``volume.json``.
+    """Write the attenuation and label volumes (``.npy``; NIfTI / ``.mha`` when nibabel / ITK is there) and ``volume.json``.
 
     ``nifti``: True requires nibabel, False skips it, None (default) writes it when nibabel is
     installed and otherwise says in ``notes`` how to get it. ``mha``: the same with ITK.
