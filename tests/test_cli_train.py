@@ -33,6 +33,16 @@ def test_k4_shared_adds_exactly_17030(capsys):
     assert int(lines[0].split()[1].replace(",", "")) - 12_168_411 == 17_030
 
 
+def test_dry_run_says_what_each_further_material_costs(capsys):
+    # K comes from the data: the count is at the default K = 3, plus the exact cost of one more material
+    code, out, _ = run_main(["k-neas", "--dry-run", "--preset", "paper"], capsys)
+    assert code == 0
+    assert "parameters: 12,185,441" not in out
+    k3 = int(re.search(r"^parameters: ([\d,]+)$", out, re.M).group(1).replace(",", ""))
+    extra = re.search(r"^parameters per further material: \+([\d,]+) \(the count above is at K = 3", out, re.M)
+    assert extra and k3 + int(extra.group(1).replace(",", "")) == 12_185_441  # the K = 4 count above
+
+
 def test_dry_run_tiny_and_auto_reason(capsys, monkeypatch):
     import torch
 

@@ -97,10 +97,53 @@ def test_mesh_export_kneas(files, tmp_path, capsys):
         assert (np.abs(v) <= half_mm + 1e-3).all()  # mm, inside the volume box
         assert f"{m['vertices']} vertices, {m['triangles']} triangles" in text
         assert isinstance(m["watertight"], bool)
-        if m["name"] != "combined":
+        if m["name"] != "combined" and m["in_combined"]:
             total += m["triangles"]
     assert info["combined"]["triangles"] == total
     assert "[every part watertight]" in text  # brackets printed, not eaten as rich markup
+
+
+def _ball(shape, centre, radius):
+    idx = np.indices(shape).astype(np.float64)
+    return np.sqrt(sum((i - c) ** 2 for i, c in zip(idx, centre))) <= radius
+
+
+def test_outer_layers_finds_the_near_air_rim_only():
+    from kneas_method.export.mesh import outer_layers
+
+    shape = (40, 40, 40)
+    body = _ball(shape, (20, 20, 20), 14)
+    rim = _ball(shape, (20, 20, 20), 15.2) & ~body  # about one voxel thick, outside the body
+    bone = _ball(shape, (20, 20, 20), 6)
+    labels = np.zeros(shape, np.uint8)
+    labels[rim], labels[body], labels[bone] = 1, 2, 3
+    # the rim's attenuation (0.07) is nearer air's (0) than soft tissue's (0.28): a partial-volume layer
+    assert outer_layers(labels, [0.07, 0.28, 0.9]) == [1]
+    # the same thin layer with an attenuation nearer the tissue's is a material (a thin coat)
+    assert outer_layers(labels, [0.2, 0.28, 0.9]) == []
+    # a thick low-attenuation material (lung) is kept although its attenuation is near air's
+    lung = np.zeros(shape, np.uint8)
+    lung[body], lung[bone] = 2, 1
+    assert outer_layers(lung, [0.04, 0.28, 0.9]) == []
+    # a thin dense layer (enamel) is not near air
+    enamel = labels.copy()
+    enamel[rim] = 3
+    enamel[bone] = 1
+    assert outer_layers(enamel, [0.5, 0.28, 1.0]) == []
+
+
+def test_mesh_export_leaves_the_outer_rim_out_of_the_combined_mesh(files, tmp_path, capsys, monkeypatch):
+    from kneas_method.export import mesh as mesh_module
+
+    monkeypatch.setattr(mesh_module, "material_layers", lambda run, chunk=65536: [1])
+    out = tmp_path / "rim"
+    assert _cli(["mesh", str(files["kneas"]), "-o", str(out), "--resolution", "40"]) == 0
+    text = capsys.readouterr().out
+    info = json.loads((out / "meshes.json").read_text())
+    first, second = info["meshes"]
+    assert not first["in_combined"] and second["in_combined"] and (out / "material-1.ply").is_file()
+    assert info["combined"]["triangles"] == second["triangles"]
+    assert "partial-volume rim" in text and "not in the combined mesh" in text
 
 
 def test_isosurface_of_exact_sphere_in_mm(files):

@@ -105,8 +105,9 @@ def _mesh(args) -> int:
             _say(f"  {m.name}: {m.note}")
             continue
         dropped = f", dropped {m.dropped_components} fragment(s) / {m.dropped_triangles} triangles" if m.dropped_components else ""
+        note = f" ({m.note})" if m.note else ""
         _say(f"  {m.name}: {m.vertices} vertices, {m.triangles} triangles, "
-                      f"{'watertight' if m.watertight else 'not watertight'} [{m.watertight_check}]{dropped} -> {m.path}")
+                      f"{'watertight' if m.watertight else 'not watertight'} [{m.watertight_check}]{dropped}{note} -> {m.path}")
     info = res.to_dict()
     info.update(method=run.config.method, scene=run.scene.name, checkpoint=str(run.checkpoint_path) if run.checkpoint_path else None,
                 units="vertices in mm, scene frame", seconds=round(time.perf_counter() - t0, 2))

@@ -111,6 +111,10 @@ def dry_run(config) -> int:
             else "none (train from the initialisation)")
     print(f"warm start: {warm}" + (f"  bounds volume: {config.bounds_volume}" if presets.automatic_bounds(config) else ""))
     print(f"parameters: {model.num_parameters():,}")
+    if model.has_surfaces and presets.k_from_data(config):
+        extra = dataclasses.replace(m, num_materials=model.num_materials + 1).setup(scale=1.0).num_parameters() - model.num_parameters()
+        print(f"parameters per further material: {extra:+,} (the count above is at K = {model.num_materials}; "
+              "training takes K from the bounds)")
     return 0
 
 

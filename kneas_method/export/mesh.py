@@ -124,6 +124,7 @@ class MeshInfo:
     level: Optional[float] = None
     note: str = ""
     watertight_check: str = ""
+    in_combined: bool = True
 
     def to_dict(self) -> dict:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
@@ -299,6 +300,63 @@ def sample_fields(run, resolution: int = DEFAULT_RESOLUTION, *, surface: str = "
     return grid, mu[..., None], "attenuation"
 
 
+def outer_layers(labels: np.ndarray, mean_mu: Sequence[float], *, core_fraction: float = 0.05) -> list[int]:
+    """Materials that are a partial-volume layer at the object's outer surface, not a material.
+
+    A smooth reconstruction passes from air to the first tissue through intermediate
+    attenuations, and a K-material model can give that rim its own material: a layer
+    about one voxel thick between air and the object, whose attenuation is nearer air's
+    than any material's (foot: material 1, mean 0.07 against soft tissue's 0.28). Such a
+    material ``k`` (1-based) is reported when both hold:
+
+    * its mean attenuation ``mean_mu[k-1]`` is nearer air (0) than the mean of every
+      other material (:func:`kneas_method.evaluation.surfaces.match_materials` with the
+      other materials' means as the levels);
+    * it has almost no core: fewer than ``core_fraction`` of its voxels survive a
+      binary erosion with the 3x3x3 cube, i.e. nowhere is it more than ~2 voxels thick.
+
+    A thick low-attenuation material (lung) keeps its core; a thin dense one (enamel) is
+    not near air. Needs no ground truth.
+
+    Args:
+        labels: ``[X, Y, Z]`` integer labels, 0 = air, k = material k (on the scene's grid).
+        mean_mu: ``[K]`` mean attenuation of each material where it is the label.
+    Returns:
+        the 1-based material numbers, ascending.
+    """
+    from scipy.ndimage import binary_erosion
+
+    from ..evaluation.surfaces import match_materials
+
+    mean_mu = np.asarray(mean_mu, dtype=np.float64)
+    labels = np.asarray(labels)
+    out = []
+    for k in range(1, len(mean_mu) + 1):
+        others = np.delete(mean_mu, k - 1)
+        if len(others) == 0 or match_materials([mean_mu[k - 1]], others)[0] != 0:
+            continue
+        region = labels == k
+        n = int(region.sum())
+        if n == 0:
+            continue
+        core = int(binary_erosion(region, structure=np.ones((3, 3, 3), bool)).sum())
+        if core < core_fraction * n:
+            out.append(k)
+    return out
+
+
+def material_layers(run, chunk: int = 65536) -> list[int]:
+    """:func:`outer_layers` of a run with a K-material selector, from its labels and mean
+    attenuations on the scene's voxel grid (the grid evaluation scores)."""
+    from ..evaluation.surfaces import labels_from_weights, material_mean_attenuation, query_grid
+
+    q = query_grid(run.model, run.scene.geometry, keys=("mu", "weights", "mu_materials"), chunk=chunk)
+    if "weights" not in q or "mu_materials" not in q:
+        return []
+    labels = labels_from_weights(q["weights"])
+    return outer_layers(labels, material_mean_attenuation(q["mu_materials"], q["weights"], labels, q["mu"]))
+
+
 def default_threshold(mu: np.ndarray) -> float:
     """Otsu's threshold of the attenuation grid (data units)."""
     from skimage.filters import threshold_otsu
@@ -343,9 +401,16 @@ def export_meshes(
     mm = grid.mm_per_unit
     result = MeshExport(resolution=tuple(grid.n_voxel), cell_mm=tuple(float(d) * mm for d in grid.d_voxel), kind=kind)
     jobs = []  # (name, field, level, inside_negative, source)
+    layers: list[int] = []
     if kind == "sdf":
         K = fields.shape[-1]
         names = _material_names(run, K)
+        layers = material_layers(run, chunk=chunk) if K > 1 else []
+        for k in layers:
+            result.notes.append(
+                f"{names[k - 1]} is a layer at most ~2 voxels thick between air and the object, its attenuation nearer "
+                f"air's than any other material's: the partial-volume rim of the outer surface, not a tissue; its mesh is "
+                f"written but left out of combined.{fmt} (evaluation counts it as air)")
         for k in range(K):
             what = "d_%d = 0" % (k + 1) if surface == "raw" else "visible region of material %d" % (k + 1)
             jobs.append((names[k], fields[..., k], 0.0, True, what))
@@ -383,16 +448,22 @@ def export_meshes(
         mesh.paint_uniform_color(colors[i])
         path = write_mesh(mesh, out / f"{stem}.{fmt}")
         tight, how = check_watertight(mesh)
+        rim = kind == "sdf" and (i + 1) in layers
         result.meshes.append(MeshInfo(name, path, len(mesh.vertices), len(mesh.triangles), tight,
-                                      comps, dropped, dropped_tri, source, level, watertight_check=how))
-        combined += mesh
+                                      comps, dropped, dropped_tri, source, level, watertight_check=how,
+                                      note="outer partial-volume layer; not in the combined mesh" if rim else "",
+                                      in_combined=not rim))
+        if not rim:
+            combined += mesh
     if len(combined.triangles):
         path = write_mesh(combined, out / f"combined.{fmt}")
         # the union of closed surfaces is closed; nested materials touch, so no self-intersection test here
-        tight = all(m.watertight for m in result.meshes if m.path is not None)
+        parts = [m for m in result.meshes if m.path is not None and m.in_combined]
+        tight = all(m.watertight for m in parts)
         result.combined = MeshInfo("combined", path, len(combined.vertices), len(combined.triangles), tight,
-                                   sum(m.components - m.dropped_components for m in result.meshes), 0, 0,
-                                   "all meshes, coloured by material", watertight_check="every part watertight")
+                                   sum(m.components - m.dropped_components for m in parts), 0, 0,
+                                   "all meshes" + (" but the outer partial-volume layer" if layers else "") + ", coloured by material",
+                                   watertight_check="every part watertight")
     else:
         result.notes.append("no surface found in the volume, so no file was written")
     return result
