@@ -135,7 +135,7 @@ def test_outer_layers_finds_the_near_air_rim_only():
 def test_mesh_export_leaves_the_outer_rim_out_of_the_combined_mesh(files, tmp_path, capsys, monkeypatch):
     from kneas_method.export import mesh as mesh_module
 
-    monkeypatch.setattr(mesh_module, "material_layers", lambda run, chunk=65536: [1])
+    monkeypatch.setattr(mesh_module, "outer_layers_of_run", lambda run, chunk=65536: [1])
     out = tmp_path / "rim"
     assert _cli(["mesh", str(files["kneas"]), "-o", str(out), "--resolution", "40"]) == 0
     text = capsys.readouterr().out

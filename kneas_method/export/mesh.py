@@ -345,7 +345,7 @@ def outer_layers(labels: np.ndarray, mean_mu: Sequence[float], *, core_fraction:
     return out
 
 
-def material_layers(run, chunk: int = 65536) -> list[int]:
+def outer_layers_of_run(run, chunk: int = 65536) -> list[int]:
     """:func:`outer_layers` of a run with a K-material selector, from its labels and mean
     attenuations on the scene's voxel grid (the grid evaluation scores)."""
     from ..evaluation.surfaces import labels_from_weights, material_mean_attenuation, query_grid
@@ -405,7 +405,7 @@ def export_meshes(
     if kind == "sdf":
         K = fields.shape[-1]
         names = _material_names(run, K)
-        layers = material_layers(run, chunk=chunk) if K > 1 else []
+        layers = outer_layers_of_run(run, chunk=chunk) if K > 1 else []
         for k in layers:
             result.notes.append(
                 f"{names[k - 1]} is a layer at most ~2 voxels thick between air and the object, its attenuation nearer "
