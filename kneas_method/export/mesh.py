@@ -448,7 +448,7 @@ def export_meshes(
         mesh.paint_uniform_color(colors[i])
         path = write_mesh(mesh, out / f"{stem}.{fmt}")
         tight, how = check_watertight(mesh)
-        rim = kind == "sdf" and (i + 1) in layers
+        rim = (i + 1) in layers  # only SDF runs have layers
         result.meshes.append(MeshInfo(name, path, len(mesh.vertices), len(mesh.triangles), tight,
                                       comps, dropped, dropped_tri, source, level, watertight_check=how,
                                       note="outer partial-volume layer; not in the combined mesh" if rim else "",
