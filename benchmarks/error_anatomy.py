@@ -13,6 +13,10 @@ volume:
   volume, ``a * (G_sigma * gt - gt)`` (Gaussian, sigma in voxels, the best of a few): the share of
   the squared error that a blur of the exact volume explains, and the width of that blur,
   ``sigma * sqrt(a)`` (for a small blur ``G_sigma * gt - gt ~ sigma^2 / 2 * laplacian(gt)``);
+- ``start_error_share`` / ``start_error_coefficient``: the run's error regressed the same way on
+  its classical start's error ``v_start - gt``: how much of what the run gets wrong is what its start
+  got wrong (a share near 1 with a coefficient below 1: the run shrinks its start's error but keeps
+  its pattern);
 - for an SDF run, ``edge_sigma_voxels``: the standard deviation of the run's learned occupancy
   profile ``sigmoid(-s d)`` across a surface, ``pi / (sqrt(3) s)`` in voxels (the exact volume's
   edges, voxel means of a sharp surface, have about 0.29).
@@ -56,16 +60,21 @@ def blur_fit(error: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
     return a, 1.0 - float(np.sum(rest * rest)) / max(float(np.sum(error * error)), 1e-30)
 
 
-def anatomy(volume: np.ndarray, gt: np.ndarray, edges: np.ndarray, blurs: dict[float, np.ndarray]) -> dict:
+def anatomy(volume: np.ndarray, gt: np.ndarray, edges: np.ndarray, blurs: dict[float, np.ndarray],
+            start: np.ndarray | None = None) -> dict:
     from kneas_method.evaluation.metrics import psnr3d
 
     e = np.asarray(volume, dtype=np.float64) - np.asarray(gt, dtype=np.float64)
     sq = e * e
     fits = {s: blur_fit(e, b) for s, b in blurs.items()}
     best = max(fits, key=lambda s: fits[s][1])
-    return {"psnr3d": round(float(psnr3d(volume, gt)), 2), "mse": float(sq.mean()),
-            "edge_voxels": round(float(edges.mean()), 4), "edge_error_share": round(float(sq[edges].sum() / sq.sum()), 3),
-            "blur_share": round(fits[best][1], 3), "blur_sigma_voxels": round(best * math.sqrt(max(fits[best][0], 0.0)), 2)}
+    row = {"psnr3d": round(float(psnr3d(volume, gt)), 2), "mse": float(sq.mean()),
+           "edge_voxels": round(float(edges.mean()), 4), "edge_error_share": round(float(sq[edges].sum() / sq.sum()), 3),
+           "blur_share": round(fits[best][1], 3), "blur_sigma_voxels": round(best * math.sqrt(max(fits[best][0], 0.0)), 2)}
+    if start is not None:
+        a, share = blur_fit(e, np.asarray(start, dtype=np.float64) - np.asarray(gt, dtype=np.float64))
+        row["start_error_share"], row["start_error_coefficient"] = round(share, 3), round(a, 3)
+    return row
 
 
 def run_anatomy(run_dir: Path) -> dict:
@@ -80,15 +89,18 @@ def run_anatomy(run_dir: Path) -> dict:
     edges = edge_mask(np.asarray(scene.labels))
     blurs = blur_directions(gt)
     volume = loaded.volume if loaded.model is None else sample_volume(loaded.model, scene.geometry)
-    row = {"run": str(run_dir), "scene": scene.name, "method": loaded.config.method, "model": anatomy(volume, gt, edges, blurs)}
+    starts = {path.name[: -len("_volume.npy")]: np.load(path) for path in sorted(run_dir.glob("*_volume.npy"))}
+    start = next(iter(starts.values())) if len(starts) == 1 else None
+    row = {"run": str(run_dir), "scene": scene.name, "method": loaded.config.method,
+           "model": anatomy(volume, gt, edges, blurs, start)}
     boundary = getattr(loaded.model, "boundary", None)
     if boundary is not None:
         s = float(boundary.s.detach())
         voxel = float(min(scene.geometry.d_voxel))  # model units per voxel
         row["model"]["sharpness_s"] = round(s, 1)
         row["model"]["edge_sigma_voxels"] = round(math.pi / (math.sqrt(3.0) * s * voxel), 2)
-    for start in sorted(run_dir.glob("*_volume.npy")):
-        row[start.name[: -len("_volume.npy")]] = anatomy(np.load(start), gt, edges, blurs)
+    for name, other in starts.items():
+        row[name] = anatomy(other, gt, edges, blurs)
     return row
 
 
