@@ -53,7 +53,7 @@ def blur_directions(gt: np.ndarray) -> dict[float, np.ndarray]:
     return {s: ndimage.gaussian_filter(g, s) - g for s in SIGMAS}
 
 
-def blur_fit(error: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
+def fit_along(error: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
     """Least-squares ``a`` in ``error ~ a * direction`` and the share of ``sum(error^2)`` it explains."""
     a = float(np.sum(error * direction) / max(float(np.sum(direction * direction)), 1e-30))
     rest = error - a * direction
@@ -66,13 +66,13 @@ def anatomy(volume: np.ndarray, gt: np.ndarray, edges: np.ndarray, blurs: dict[f
 
     e = np.asarray(volume, dtype=np.float64) - np.asarray(gt, dtype=np.float64)
     sq = e * e
-    fits = {s: blur_fit(e, b) for s, b in blurs.items()}
+    fits = {s: fit_along(e, b) for s, b in blurs.items()}
     best = max(fits, key=lambda s: fits[s][1])
     row = {"psnr3d": round(float(psnr3d(volume, gt)), 2), "mse": float(sq.mean()),
            "edge_voxels": round(float(edges.mean()), 4), "edge_error_share": round(float(sq[edges].sum() / sq.sum()), 3),
            "blur_share": round(fits[best][1], 3), "blur_sigma_voxels": round(best * math.sqrt(max(fits[best][0], 0.0)), 2)}
     if start is not None:
-        a, share = blur_fit(e, np.asarray(start, dtype=np.float64) - np.asarray(gt, dtype=np.float64))
+        a, share = fit_along(e, np.asarray(start, dtype=np.float64) - np.asarray(gt, dtype=np.float64))
         row["start_error_share"], row["start_error_coefficient"] = round(share, 3), round(a, 3)
     return row
 
