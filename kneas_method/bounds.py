@@ -39,6 +39,15 @@ paper's, used by the cpu preset; ``k_rule`` and ``min_std``):
   be placed by the boundary rule (for ``gmm``: a valley of the mixture density). A
   K that splits one material into two overlapping components has no valley
   between them, so it is not a K of distinct materials.
+* ``k_rule="peaks"``: the materials are the peaks of the values' histogram
+  (:func:`histogram_peaks`): K is their number and each inner boundary the histogram's
+  lowest point between two adjacent peaks, SPEC §4's valley rule applied to the
+  histogram rather than to a fitted mixture. No mixture is fitted, so nothing depends on
+  ``random_state`` (the GMM rules' K can change with it). A TV-regularised
+  reconstruction flattens each material into a plateau, a narrow spike in its histogram,
+  so the peaks are the materials' levels; a noisy or textured volume smears them: with
+  fewer than two peaks the rule falls back to ``bic-valleys`` (``k_rule_used_`` says
+  which decided). With ``n_components`` given the rule is not used (as for the others).
 * ``min_std``: the smallest component standard deviation, as a fraction of the
   ``upper_percentile`` value (sklearn's ``reg_covar``). A regularised reconstruction
   (TV) flattens a large material into a spike that a component of near-zero width
@@ -58,11 +67,53 @@ import numpy as np
 
 from .errors import ConfigError, KneasError
 
-__all__ = ["GMMBounds", "Bounds", "load_bounds", "DEFAULT_AIR_FRACTION"]
+__all__ = ["GMMBounds", "Bounds", "load_bounds", "histogram_peaks", "DEFAULT_AIR_FRACTION", "K_RULES"]
 
 DEFAULT_AIR_FRACTION = 0.05  # "auto" air threshold = this × the 99.5th percentile of all values
 _MIN_VALUES = 50  # fewer non-air samples than this: the prior model looks empty
 _GRID = 4001
+K_RULES = ("bic", "bic-valleys", "peaks")
+PEAK_BIN_WIDTH = 1 / 500  # histogram bin, in units of the upper percentile
+PEAK_MIN_PROMINENCE = 1.5  # in log(1 + count): a peak stands >= e^1.5 ~ 4.5x above the valleys beside it
+PEAK_MIN_FRACTION = 1e-4  # a peak's bin holds at least this fraction of the values
+
+
+def histogram_peaks(z, *, top: float, bin_width: float = PEAK_BIN_WIDTH, min_prominence: float = PEAK_MIN_PROMINENCE,
+                    min_fraction: float = PEAK_MIN_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Peaks of the histogram of ``z`` and the lowest points between them.
+
+    The histogram has bins of ``bin_width`` from 0 to ``top``; its ``log(1 + count)`` is
+    smoothed by ``[1, 2, 1] / 4``. A peak is a local maximum of that curve whose
+    prominence (``scipy.signal.find_peaks``, the curve taken as 0 outside the range) is at
+    least ``min_prominence`` and whose bin holds at least ``min_fraction`` of ``z``.
+
+    Args:
+        z: values [N], in any unit (``bin_width`` and ``top`` in the same unit).
+        top: the histogram's upper end; values above it are left out.
+
+    Returns:
+        ``(peaks [P], valleys [P - 1], prominences [P])``: the peaks' bin centres
+        (ascending), the bin centre of the smoothed curve's minimum between each two
+        adjacent peaks (the middle one where several bins share it, e.g. an empty gap), and
+        each peak's prominence.
+    """
+    from scipy.signal import find_peaks
+
+    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    edges = np.arange(0.0, float(top) + bin_width, bin_width)
+    count, _ = np.histogram(z, edges)
+    centre = 0.5 * (edges[1:] + edges[:-1])
+    h = np.log1p(count)
+    h = np.convolve(np.r_[h[0], h, h[-1]], [0.25, 0.5, 0.25], mode="valid")
+    idx, props = find_peaks(np.r_[0.0, h, 0.0], prominence=min_prominence)
+    idx, prom = idx - 1, props["prominences"]
+    keep = count[idx] >= min_fraction * z.size
+    idx, prom = idx[keep], prom[keep]
+    valleys = []
+    for i, j in zip(idx[:-1], idx[1:]):
+        lowest = np.flatnonzero(h[i:j + 1] == h[i:j + 1].min())
+        valleys.append(i + int(lowest[lowest.size // 2]))  # the middle of a flat (e.g. empty) valley
+    return centre[idx], centre[np.array(valleys, dtype=int)], prom
 
 
 @dataclass(frozen=True)
@@ -159,8 +210,9 @@ class GMMBounds:
         method: ``"gmm"`` (paper: mixture-density valleys), ``"quantile"`` or
             ``"bayes"`` (see module docstring).
         n_init: GaussianMixture restarts per K.
-        k_rule: ``"bic"`` (paper: the lowest BIC) or ``"bic-valleys"`` (the lowest BIC
-            among K whose boundaries can all be placed; see module docstring).
+        k_rule: ``"bic"`` (paper: the lowest BIC), ``"bic-valleys"`` (the lowest BIC
+            among K whose boundaries can all be placed) or ``"peaks"`` (the histogram's
+            peaks and the valleys between them, no mixture; see module docstring).
         min_std: smallest component standard deviation as a fraction of the
             ``upper_percentile`` value (scale-free); 0 = sklearn's default regulariser.
 
@@ -168,7 +220,9 @@ class GMMBounds:
     ``betas_ [K]``, ``means_ [K]``, ``stds_ [K]``, ``weights_ [K]`` (sorted by mean),
     ``bic_`` (``{K: BIC}``, in the units of the input values), ``placeable_`` (``{K: bool}``,
     every boundary placed by the rule; filled for each K tried under ``bic-valleys``), ``gmm_`` (the chosen
-    ``sklearn.mixture.GaussianMixture``, fitted on values divided by ``unit_``),
+    ``sklearn.mixture.GaussianMixture``, fitted on values divided by ``unit_``; None when the
+    ``peaks`` rule placed the bounds), ``k_rule_used_`` (the rule that chose K), ``peaks_`` (the
+    histogram's peaks, data units, under the ``peaks`` rule),
     ``air_threshold_``, ``n_values_``, ``n_kept_``, ``warnings_``, ``kept_`` (the
     values used for the fits).
     """
@@ -203,8 +257,11 @@ class GMMBounds:
     def _check_settings(self):
         if self.method not in ("gmm", "quantile", "bayes"):
             raise ConfigError(f"bounds method {self.method!r} is not known; use 'gmm' (paper), 'quantile' or 'bayes'")
-        if self.k_rule not in ("bic", "bic-valleys"):
-            raise ConfigError(f"bounds K rule {self.k_rule!r} is not known; use 'bic' (paper) or 'bic-valleys'")
+        if self.k_rule not in K_RULES:
+            raise ConfigError(f"bounds K rule {self.k_rule!r} is not known; use 'bic' (paper), 'bic-valleys' or 'peaks'")
+        if self.k_rule == "peaks" and self.n_components is None and self.method != "gmm":
+            raise ConfigError(f"the 'peaks' K rule places its own boundaries (the histogram's valleys), so method {self.method!r} "
+                              "would not be used; use method 'gmm' with it, or another K rule")
         if not (isinstance(self.min_std, (int, float, np.integer, np.floating)) and not isinstance(self.min_std, bool)
                 and math.isfinite(self.min_std) and 0 <= self.min_std < 1):
             raise ConfigError(f"min_std must be a fraction in [0, 1) of the upper percentile, got {self.min_std!r}")
@@ -255,11 +312,21 @@ class GMMBounds:
             raise KneasError(
                 f"only {kept.size} of {x.size} attenuation values lie above the air threshold {self.air_threshold_:.4g}: "
                 "the prior model looks empty — train the single-material prior longer, lower air_threshold, or give bounds by hand")
+        self.warnings_: list[str] = []
+        self.k_rule_used_ = "given" if self.n_components is not None else self.k_rule
+        self.peaks_ = []
+        if self.k_rule == "peaks" and self.n_components is None:
+            # on every kept value (no subsample), so nothing depends on random_state
+            unit = float(np.percentile(kept, self.upper_percentile)) or 1.0
+            peaks, valleys, _ = histogram_peaks(kept / unit, top=self.upper_factor)
+            self.peaks_ = [float(v) for v in peaks * unit]
+            if peaks.size >= 2:
+                return self._adopt_peaks(kept, unit, peaks * unit, valleys * unit)
+            self.k_rule_used_ = f"bic-valleys (the histogram has {peaks.size} peak{'s' if peaks.size != 1 else ''})"
         rng = np.random.default_rng(self.random_state)
         if kept.size > self.max_samples:
             kept = rng.choice(kept, size=self.max_samples, replace=False)
         self.kept_ = kept
-        self.warnings_: list[str] = []
 
         upper = self.upper_factor * float(np.percentile(kept, self.upper_percentile))
         # Fit on values in units of the upper percentile so the sklearn covariance
@@ -302,7 +369,25 @@ class GMMBounds:
                 if self.placeable_[k]:
                     break
 
-        b = np.array([0.0, *inner, upper])
+        return self._set_boundaries(np.array([0.0, *inner, upper]))
+
+    def _adopt_peaks(self, kept: np.ndarray, unit: float, peaks: np.ndarray, valleys: np.ndarray) -> "GMMBounds":
+        """The ``peaks`` rule's result: one material per histogram peak (data units), the
+        valleys between them as inner boundaries; ``means_`` are the peaks, ``weights_`` and
+        ``stds_`` the share and spread of the kept values between each material's boundaries."""
+        self.gmm_ = None
+        self.bic_, self.placeable_ = {}, {}
+        self.unit_ = unit
+        self.kept_ = kept
+        self.n_components_ = int(peaks.size)
+        b = np.array([0.0, *valleys, self.upper_factor * unit])
+        self.means_ = np.asarray(peaks, dtype=np.float64)
+        which = np.clip(np.searchsorted(b, kept, side="right") - 1, 0, peaks.size - 1)
+        self.weights_ = np.bincount(which, minlength=peaks.size) / kept.size
+        self.stds_ = np.array([kept[which == k].std() if np.any(which == k) else 0.0 for k in range(peaks.size)])
+        return self._set_boundaries(b)
+
+    def _set_boundaries(self, b: np.ndarray) -> "GMMBounds":
         if b[-1] <= b[-2]:
             raise KneasError(
                 f"upper bound {b[-1]:.4g} does not exceed the last inner boundary {b[-2]:.4g}; "
@@ -314,7 +399,7 @@ class GMMBounds:
         self.betas_ = b[:-1].copy()
         self.alphas_ = np.diff(b)
         for w in self.warnings_:
-            _warnings.warn(w, stacklevel=2)
+            _warnings.warn(w, stacklevel=3)
         return self
 
     def _adopt(self, gm, k: int, kept: np.ndarray) -> list[float]:
@@ -373,7 +458,9 @@ class GMMBounds:
             raise KneasError("GMMBounds is not fitted yet; call fit(values) first")
 
     def density(self, x) -> np.ndarray:
-        """Mixture density at ``x`` (data units) -> same shape, 1/(model attenuation unit)."""
+        """Mixture density at ``x`` (data units) -> same shape, 1/(model attenuation unit).
+        Under the ``peaks`` rule (no mixture) it is the normal mixture of the materials'
+        shares, peaks and spreads, a summary rather than a fit."""
         x = np.asarray(x, dtype=np.float64)
         return sum(w * _normal_pdf(x, m, s) for w, m, s in zip(self.weights_, self.means_, self.stds_))
 
@@ -394,6 +481,8 @@ class GMMBounds:
             "boundaries": [float(v) for v in self.boundaries_],
             "bic": {str(k): float(v) for k, v in sorted(self.bic_.items())},
             "placeable": {str(k): bool(v) for k, v in sorted(self.placeable_.items())},
+            "k_rule_used": self.k_rule_used_,
+            "peaks": list(self.peaks_),
             "means": [float(v) for v in self.means_],
             "stds": [float(v) for v in self.stds_],
             "weights": [float(v) for v in self.weights_],
@@ -435,14 +524,18 @@ class GMMBounds:
         hi = max(float(self.boundaries_[-1]), float(v.max()) if v.size else 1.0)
         ax.hist(v, bins=bins, range=(0, hi), density=True, color="0.75", label="samples (non-air)")
         grid = np.linspace(0, hi, 1000)
-        ax.plot(grid, self.density(grid), "k", lw=2.5, alpha=0.6, label=f"mixture (K={self.n_components_})")
-        for k, (w, m, s) in enumerate(zip(self.weights_, self.means_, self.stds_)):
-            ax.plot(grid, w * _normal_pdf(grid, m, s), lw=1.2, ls="--", label=f"component {k + 1}")
+        if self.gmm_ is None:  # the peaks rule: no mixture, the materials are the histogram's peaks
+            for k, m in enumerate(self.means_):
+                ax.axvline(m, color="tab:blue", lw=1, ls="--", label="histogram peaks" if k == 0 else None)
+        else:
+            ax.plot(grid, self.density(grid), "k", lw=2.5, alpha=0.6, label=f"mixture (K={self.n_components_})")
+            for k, (w, m, s) in enumerate(zip(self.weights_, self.means_, self.stds_)):
+                ax.plot(grid, w * _normal_pdf(grid, m, s), lw=1.2, ls="--", label=f"component {k + 1}")
         for k, b in enumerate(self.boundaries_):
             ax.axvline(b, color="tab:red", lw=1, alpha=0.8, label="boundaries $b_k$" if k == 0 else None)
         ax.set_xlabel("attenuation (data units)")
         ax.set_ylabel("density")
-        ax.set_title(title or f"GMM attenuation bounds ({self.method})")
+        ax.set_title(title or ("attenuation bounds (histogram peaks)" if self.gmm_ is None else f"GMM attenuation bounds ({self.method})"))
         ax.legend(fontsize=7)
         fig.tight_layout()
         out = Path(path)

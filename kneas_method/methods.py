@@ -50,7 +50,7 @@ from .registry import MethodSpecification
 Preset = Literal["auto", "paper", "cpu", "tiny"]
 BoundsSource = Literal["wide", "auto", "none"]
 BoundsMethod = Literal["gmm", "quantile", "bayes"]
-BoundsKRule = Literal["bic", "bic-valleys"]
+BoundsKRule = Literal["bic", "bic-valleys", "peaks"]
 BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
@@ -189,9 +189,12 @@ class TrainConfig(RunConfig):
             ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
         bounds_max_materials: automatic bounds try K = 1..this (paper 4; None = the preset's:
             paper and tiny 4, cpu 6).
-        bounds_k_rule: how automatic bounds pick K: ``bic`` (paper: the lowest BIC) or
+        bounds_k_rule: how automatic bounds pick K: ``bic`` (paper: the lowest BIC),
             ``bic-valleys`` (the lowest BIC among K whose boundaries are all valleys of the
-            mixture density; None = the preset's: cpu bic-valleys, else bic).
+            mixture density) or ``peaks`` (one material per peak of the volume's histogram,
+            boundaries at its valleys, no mixture and no seed, material 1's labels from half
+            its peak (``model.first_label_threshold``); bic-valleys where the histogram has
+            fewer than two peaks); None = the preset's: cpu bic-valleys, else bic.
         bounds_min_std: the GMM components' smallest standard deviation, as a fraction of
             the 99.5th-percentile attenuation (0 = sklearn's default regulariser; None = the
             preset's: 0 in every preset). Keeps a TV-flattened material from taking a spike component.

@@ -108,6 +108,11 @@ class ModelConfig(InstantiateConfig):
             plane of its dominant axis (Joseph's rule, ``renderer.voxel_plane_samples``), on the
             scene's voxel grid (``set_voxel_grid``); ``num_samples`` is then unused. None = the
             preset's.
+        first_label_threshold: the attenuation (data units) above which a volume's voxel counts
+            as inside material 1 for the occupancy labels (warm start and anchor,
+            :meth:`CTModel.label_thresholds`); None = ``alpha_1 / 2``. The ``peaks`` K rule sets it
+            to half the first material's peak: its material 1 reaches up to the valley before the
+            next material, so ``alpha_1 / 2`` can lie above material 1's own level.
         compile: ``torch.compile`` the fused SDF pass (values + distance gradients).
             Opt-in: measured on 2 loaded CPU cores (cpu preset, 20,480 points) the
             pass + its backward ran ~35 % faster, but compiling took ~3 minutes,
@@ -143,6 +148,7 @@ class ModelConfig(InstantiateConfig):
     occupancy_grid: Optional[bool] = None
     occupancy_resolution: int = 64
     quadrature: Optional[Quadrature] = None
+    first_label_threshold: Optional[float] = None
     compile: bool = False
 
 
@@ -406,9 +412,17 @@ class CTModel(nn.Module):
 
     def label_thresholds(self) -> torch.Tensor:
         """``[K]`` the attenuation each material's label starts at (data units): ``beta_k``,
-        and for k = 1 ``alpha_1 / 2`` (half way from air to the first material's top)."""
+        and for k = 1 ``model.first_label_threshold``, by default ``alpha_1 / 2`` (half way
+        from air to the first material's top)."""
         alphas, betas = self.attenuation.alphas, self.attenuation.betas
-        return torch.cat([alphas[:1] / 2, betas[1:]])
+        first = self.config.first_label_threshold
+        if first is None:
+            return torch.cat([alphas[:1] / 2, betas[1:]])
+        top = float(betas[0] + alphas[0])
+        if not (math.isfinite(first) and 0 < first < top):
+            raise ConfigError(f"model.first_label_threshold {first!r} must lie inside material 1's range (0, {top:.4g}); "
+                              "give a value between air and the first material's level, or leave it out")
+        return torch.cat([alphas.new_tensor([float(first)]), betas[1:]])
 
     def occupancy_loss(self, distances: torch.Tensor, targets: torch.Tensor,
                        mask: Optional[torch.Tensor] = None) -> torch.Tensor:

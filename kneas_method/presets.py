@@ -190,6 +190,9 @@ def resolve(config: RunConfig) -> RunConfig:
     restarts = run["bounds_gmm_restarts"]
     if not (isinstance(restarts, int) and not isinstance(restarts, bool) and restarts >= 1):
         raise ConfigError(f"--bounds-gmm-restarts must be a whole number >= 1, got {restarts!r}")
+    if run["bounds_k_rule"] == "peaks" and config.bounds_method != "gmm" and config.num_materials is None:
+        raise ConfigError(f"--bounds-k-rule peaks places its own boundaries (the histogram's valleys), so --bounds-method "
+                          f"{config.bounds_method} would not be used; drop --bounds-method or use another --bounds-k-rule")
     return dataclasses.replace(
         config,
         preset=name,
@@ -212,8 +215,11 @@ def procedure_notes(config: TrainConfig) -> list[str]:
     if k_from_data(config) and automatic_bounds(config) and (
             config.bounds_max_materials != 4 or config.bounds_k_rule != "bic" or config.bounds_min_std
             or config.bounds_gmm_restarts != 1):
-        notes.append(f"materials: K = 1..{config.bounds_max_materials} by "
-                     + ("the lowest BIC whose boundaries are all density valleys" if config.bounds_k_rule == "bic-valleys" else "BIC")
+        peaks = config.bounds_k_rule == "peaks"
+        notes.append(("materials: one per peak of the volume's histogram, boundaries at its valleys, material 1's labels from half "
+                      "its peak; if the histogram has fewer than two peaks, " if peaks else "materials: ")
+                     + f"K = 1..{config.bounds_max_materials} by "
+                     + ("the lowest BIC whose boundaries are all density valleys" if config.bounds_k_rule != "bic" else "BIC")
                      + (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")
                      + (f", the best of {config.bounds_gmm_restarts} GMM starts" if config.bounds_gmm_restarts != 1 else "")
                      + " (the paper: K = 1..4 by BIC; " + " ".join(

@@ -229,3 +229,115 @@ def test_restarts_keep_a_low_contrast_material_one_start_merges():
 def test_bad_k_settings_are_one_line_errors(kw, match):
     with pytest.raises(ConfigError, match=match):
         GMMBounds(**kw).fit(three_materials())
+
+
+# ----------------------------------------------------------------- the peaks K rule
+ABDOMEN_LIKE = [0.15, 0.25, 0.29, 0.33, 0.5, 0.85]  # three soft levels 0.04 apart, the kidney-like one small
+
+
+def tv_spikes(seed=0, n=300_000, levels=ABDOMEN_LIKE, weights=(0.45, 0.25, 0.12, 0.015, 0.02, 0.005)):
+    """A TV-regularised reconstruction's values: each material a plateau (a spike of width 1e-3),
+    on a smear of partial-volume edge voxels between and around the levels (the rest of n)."""
+    rng = np.random.default_rng(seed)
+    parts = [rng.normal(v, 1e-3, int(n * w)) for v, w in zip(levels, weights)]
+    smear = n - sum(p.size for p in parts)
+    parts.append(rng.uniform(0.05, 0.9, smear))
+    return rng.permutation(np.concatenate(parts))
+
+
+def naive_peaks(h, min_prominence):
+    """Oracle for ``histogram_peaks``' peak test: local maxima (plateaus at their left end) of
+    ``h`` padded with 0, prominence by its definition: the peak's height above the higher of
+    the two lowest points reached before a higher value on either side."""
+    g = np.r_[0.0, h, 0.0]
+    out = []
+    i = 1
+    while i < g.size - 1:
+        j = i
+        while j + 1 < g.size - 1 and g[j + 1] == g[i]:
+            j += 1  # a flat top spans i..j
+        if g[i - 1] < g[i] and g[j + 1] < g[i]:
+            left = g[:i][::-1]
+            stop = np.nonzero(left > g[i])[0]
+            lmin = left[: stop[0] if stop.size else left.size].min()
+            right = g[j + 1:]
+            stop = np.nonzero(right > g[i])[0]
+            rmin = right[: stop[0] if stop.size else right.size].min()
+            if g[i] - max(lmin, rmin) >= min_prominence:
+                out.append((i + j) // 2 - 1)
+        i = j + 1
+    return np.array(out, dtype=int)
+
+
+def test_histogram_peaks_agree_with_the_naive_oracle():
+    from kneas_method.bounds import PEAK_BIN_WIDTH, histogram_peaks
+
+    rng = np.random.default_rng(3)
+    for trial in range(5):
+        z = np.concatenate([rng.normal(rng.uniform(0.1, 1.0), rng.uniform(0.002, 0.05), rng.integers(200, 5000))
+                            for _ in range(rng.integers(1, 6))] + [rng.uniform(0, 1.1, 2000)])
+        peaks, valleys, prom = histogram_peaks(z, top=1.15, min_fraction=0.0)
+        edges = np.arange(0.0, 1.15 + PEAK_BIN_WIDTH, PEAK_BIN_WIDTH)
+        h = np.log1p(np.histogram(z, edges)[0].astype(float))
+        h = np.convolve(np.r_[h[0], h, h[-1]], [0.25, 0.5, 0.25], mode="valid")
+        expect = naive_peaks(h, 1.5)
+        centre = 0.5 * (edges[1:] + edges[:-1])
+        np.testing.assert_allclose(peaks, centre[expect])
+        assert np.all(prom >= 1.5) and valleys.size == max(peaks.size - 1, 0)
+        for lo, v, hi in zip(peaks[:-1], valleys, peaks[1:]):
+            i0, iv, i1 = (int(round((t - centre[0]) / PEAK_BIN_WIDTH)) for t in (lo, v, hi))
+            assert lo < v < hi and h[iv] == h[i0:i1 + 1].min()
+
+
+def test_peaks_rule_finds_every_plateau_and_does_not_depend_on_the_seed():
+    """Six TV plateaus, three of them 0.04 apart and one of those 1.5 % of the values (abdomen's
+    kidney): one material per plateau, each plateau inside its own material, no mixture fitted,
+    and the same bounds at every seed although there are more values than max_samples."""
+    values = tv_spikes()
+    gb = GMMBounds(max_components=8, k_rule="peaks").fit(values)
+    assert gb.n_components_ == len(ABDOMEN_LIKE) and gb.k_rule_used_ == "peaks" and gb.gmm_ is None
+    np.testing.assert_allclose(gb.means_, ABDOMEN_LIKE, atol=0.004)
+    for v, lo, hi in zip(ABDOMEN_LIKE, gb.boundaries_[:-1], gb.boundaries_[1:]):
+        assert lo + 0.005 < v < hi - 0.005, (np.round(gb.boundaries_, 3), ABDOMEN_LIKE)
+    assert gb.weights_.sum() == pytest.approx(1.0) and np.all(gb.stds_ > 0)
+    other = GMMBounds(max_components=8, k_rule="peaks", random_state=7).fit(values)
+    np.testing.assert_array_equal(other.boundaries_, gb.boundaries_)
+    d = gb.to_dict()
+    assert d["k_rule_used"] == "peaks" and len(d["peaks"]) == len(ABDOMEN_LIKE) and d["bic"] == {}
+    assert GMMBounds.from_dict(d).K == len(ABDOMEN_LIKE)
+
+
+def test_peaks_rule_finds_well_separated_materials(fitted):
+    values, ref = fitted  # three materials 0.3-0.4 apart, 0.03-0.05 wide: three clear peaks
+    gb = GMMBounds(max_components=6, k_rule="peaks").fit(values)
+    assert gb.n_components_ == 3 and gb.k_rule_used_ == "peaks"
+    np.testing.assert_allclose(gb.means_, MEANS, atol=0.03)
+    assert np.all(np.abs(gb.boundaries_[1:-1] - true_valleys()) < 0.05)
+
+
+def test_peaks_rule_falls_back_to_bic_valleys_on_a_smeared_histogram():
+    """Noise smears the materials (a noisy scan): the second material is a shoulder of the
+    first, with no valley before it, so the histogram has one peak and K comes from the mixtures."""
+    rng = np.random.default_rng(0)
+    values = np.concatenate([rng.normal(0.2, 0.12, 40000), rng.normal(0.6, 0.15, 10000)])
+    values = values[values > 0.01]
+    gb = GMMBounds(max_components=6, k_rule="peaks").fit(values)
+    assert gb.k_rule_used_ == "bic-valleys (the histogram has 1 peak)" and len(gb.peaks_) == 1 and gb.gmm_ is not None
+    ref = GMMBounds(max_components=6, k_rule="bic-valleys").fit(values)
+    assert gb.n_components_ == ref.n_components_
+    np.testing.assert_array_equal(gb.boundaries_, ref.boundaries_)
+
+
+def test_peaks_rule_with_k_given_fits_the_mixture(fitted):
+    values, gb = fitted
+    given = GMMBounds(n_components=3, k_rule="peaks").fit(values)
+    assert given.k_rule_used_ == "given" and given.gmm_ is not None
+    np.testing.assert_allclose(given.boundaries_, GMMBounds(n_components=3).fit(values).boundaries_)
+
+
+def test_peaks_rule_plot_and_bad_method(tmp_path):
+    gb = GMMBounds(k_rule="peaks").fit(tv_spikes(n=50_000))
+    png = gb.plot(tmp_path / "peaks.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ConfigError, match="peaks"):
+        GMMBounds(k_rule="peaks", method="quantile").fit(tv_spikes(n=50_000))

@@ -129,7 +129,7 @@ def test_choices_are_listed_by_help_and_checked(tmp_path, capsys):
     for flag, choices in (("--bounds-volume", "{None,prior,fdk,sart,os-sart,cgls,asd-pocs}"),
                           ("--trainer.warm-start", "{None,none,fdk,sart,os-sart,cgls,asd-pocs}"),
                           ("--preset", "{auto,paper,cpu,tiny}"), ("--bounds-method", "{gmm,quantile,bayes}"),
-                          ("--bounds-k-rule", "{None,bic,bic-valleys}"), ("--model.quadrature", "{None,bins,voxel-planes}")):
+                          ("--bounds-k-rule", "{None,bic,bic-valleys,peaks}"), ("--model.quadrature", "{None,bins,voxel-planes}")):
         assert re.search(rf"{re.escape(flag)} {re.escape(choices)}", out), flag
     bad = tmp_path / "bad.json"
     data = to_dict(registry.load("methods", "k-neas").config)

@@ -167,3 +167,30 @@ def test_neas_2m_and_k_neas_share_one_prior():
     a = prior_config(presets.resolve(dataclasses.replace(k_neas.config, preset="tiny")))
     b = prior_config(presets.resolve(dataclasses.replace(neas_2m.config, preset="tiny")))
     assert a.model == b.model and a.trainer == b.trainer and a.datamanager == b.datamanager
+
+
+def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
+    """``--bounds-k-rule peaks``: the note says what it does, a boundary method it would ignore is
+    refused before any work, and the bounds stage records which rule decided K."""
+    import numpy as np
+
+    from conftest import sphere_scene
+    from kneas_method.engine.bounds_stage import estimate_bounds
+
+    c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu", bounds_k_rule="peaks")
+    cfg = presets.resolve(c)
+    note = next(n for n in presets.procedure_notes(cfg) if n.startswith("materials:"))
+    assert note.startswith("materials: one per peak of the volume's histogram") and "--bounds-k-rule bic" in note
+    with pytest.raises(ConfigError, match="bounds-method bayes"):
+        presets.resolve(dataclasses.replace(c, bounds_method="bayes"))
+    presets.resolve(dataclasses.replace(c, bounds_method="bayes", num_materials=3))  # K given: the rule is not used
+    rng = np.random.default_rng(0)
+    volume = np.zeros(40 ** 3)
+    volume[: 30000] = 0.3 + rng.normal(0, 1e-3, 30000)  # two TV plateaus on a partial-volume smear
+    volume[30000: 36000] = 0.8 + rng.normal(0, 1e-3, 6000)
+    volume[36000: 40000] = rng.uniform(0.05, 0.85, 4000)
+    result = estimate_bounds(cfg, sphere_scene(), tmp_path, torch.device("cpu"), volume=volume.reshape(40, 40, 40))
+    assert result.K == 2 and result.details["k_chosen_by"] == "peaks" and "histogram peaks" in result.source
+    assert 0.3 < result.betas[1] < 0.8 and result.details["gmm"]["peaks"] == pytest.approx([0.3, 0.8], abs=0.004)
+    assert result.details["first_label_threshold"] == pytest.approx(0.15, abs=0.002)  # half material 1's level
+    assert (tmp_path / "figures" / "gmm_bounds.png").is_file()

@@ -94,6 +94,27 @@ def test_occupancy_loss_scores_the_labels_the_values_give(small_scene, tmp_path)
         assert good < float(model.occupancy_loss(one_wrong, targets)) < bad
 
 
+def test_first_label_threshold_moves_where_material_one_starts(small_scene, tmp_path):
+    """Bounds whose material 1 reaches far above its own level (the peaks rule: up to the valley
+    before material 2): alpha_1 / 2 = 0.25 would call a 0.18 voxel air; the model's
+    ``first_label_threshold`` (half that material's level) puts it in material 1."""
+    scene = load_naf(small_scene)
+    bounds = ([0.5, 0.2, 0.3], [0.0, 0.5, 0.7])
+    default = Trainer(_tiny_config(), scene, tmp_path / "a", epochs=1, device="cpu", bounds=bounds).model
+    cfg = _tiny_config()
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, first_label_threshold=0.09))
+    told = Trainer(cfg, scene, tmp_path / "b", epochs=1, device="cpu", bounds=bounds).model
+    np.testing.assert_allclose(default.label_thresholds().detach().numpy(), [0.25, 0.5, 0.7])
+    np.testing.assert_allclose(told.label_thresholds().detach().numpy(), [0.09, 0.5, 0.7])
+    targets = torch.tensor([0.05, 0.18, 0.6])
+    inside_one = torch.tensor([[0.2, 0.2, 0.2], [-0.2, 0.2, 0.2], [-0.2, -0.2, 0.2]])  # the 0.18 voxel inside material 1
+    with torch.no_grad():
+        assert float(told.occupancy_loss(inside_one, targets)) < float(default.occupancy_loss(inside_one, targets))
+    bad = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, first_label_threshold=0.7))
+    with pytest.raises(ConfigError, match="first_label_threshold"):
+        Trainer(bad, scene, tmp_path / "c", epochs=1, device="cpu", bounds=bounds).model.label_thresholds()
+
+
 def test_anchor_with_occupancy_adds_the_label_term_away_from_the_edges(small_scene, tmp_path):
     scene = load_naf(small_scene)
     target = np.asarray(scene.image, dtype=np.float32)

@@ -203,24 +203,35 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
             raise ConfigError(f"bounds volume {config.bounds_volume!r} was not computed; this is a bug in the pipeline")
         what = config.bounds_volume.upper()
     t0 = time.perf_counter()
-    say(f"bounds: fitting Gaussian mixtures ({'K = ' + str(K) if K is not None else f'K = 1..{config.bounds_max_materials}'}, "
-        f"{config.bounds_gmm_restarts} start(s) each) to the {what} voxel values", markup=False)
+    if config.bounds_k_rule == "peaks" and K is None:
+        say(f"bounds: one material per peak of the {what} voxel values' histogram (Gaussian mixtures, K = 1..{config.bounds_max_materials}, "
+            "if it has fewer than two)", markup=False)
+    else:
+        say(f"bounds: fitting Gaussian mixtures ({'K = ' + str(K) if K is not None else f'K = 1..{config.bounds_max_materials}'}, "
+            f"{config.bounds_gmm_restarts} start(s) each) to the {what} voxel values", markup=False)
     gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
                     max_components=int(config.bounds_max_materials), k_rule=config.bounds_k_rule,
                     min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(volume)
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
-    chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else f"({rule}: " + ", ".join(
-        f"K={k}: {v:.4g}" + ("" if gmm.placeable_.get(k, True) else " no valley") for k, v in sorted(gmm.bic_.items())) + ")")
-    gmm.plot(Path(run_dir) / "figures" / "gmm_bounds.png", title=f"{scene.name}: GMM attenuation bounds ({config.bounds_method}), K = {gmm.n_components_}")
+    if config.bounds_k_rule == "peaks":
+        peaks = f"histogram peaks at {', '.join(f'{v:.4g}' for v in gmm.peaks_) or 'none'}"
+        rule = peaks + ("" if gmm.gmm_ is None else f"; fewer than two, so the {rule}")
+    chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else f"({rule}" + ("" if gmm.gmm_ is None else ": " + ", ".join(
+        f"K={k}: {v:.4g}" + ("" if gmm.placeable_.get(k, True) else " no valley") for k, v in sorted(gmm.bic_.items()))) + ")")
+    how = "histogram peaks" if gmm.gmm_ is None else f"GMM ({config.bounds_method})"
+    gmm.plot(Path(run_dir) / "figures" / "gmm_bounds.png", title=f"{scene.name}: attenuation bounds ({how}), K = {gmm.n_components_}")
     mu_needed = _line_integral_check(gmm, scene, what)
     for w in gmm.warnings_:
         say(f"[yellow]bounds warning:[/] {w}")
-    say(f"bounds: GMM ({config.bounds_method}) on {gmm.n_kept_:,} {what} voxel values in {time.perf_counter() - t0:.0f} s, {chosen}; "
+    say(f"bounds: {how} on {gmm.n_kept_:,} {what} voxel values in {time.perf_counter() - t0:.0f} s, {chosen}; "
         f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
-    details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else config.bounds_k_rule,
+    details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else gmm.k_rule_used_,
                "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,
                "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
+    if gmm.gmm_ is None:  # the peaks rule: material 1's labels start half way from air to its level
+        details["first_label_threshold"] = 0.5 * float(gmm.means_[0])
     return BoundsResult([float(v) for v in gmm.alphas_], [float(v) for v in gmm.betas_], int(gmm.n_components_),
-                        f"gmm ({config.bounds_method}) on the {what}", 0.0 if prior is None else prior.seconds, details)
+                        ("histogram peaks" if gmm.gmm_ is None else f"gmm ({config.bounds_method})") + f" on the {what}",
+                        0.0 if prior is None else prior.seconds, details)

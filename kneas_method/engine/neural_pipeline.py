@@ -103,8 +103,11 @@ class NeuralPipeline:
         try:
             bounds = self.bounds()
             config = self.config
-            if bounds is not None:  # the K actually trained
-                config = dataclasses.replace(config, num_materials=bounds.K, model=dataclasses.replace(config.model, num_materials=bounds.K))
+            if bounds is not None:  # the K actually trained (and, from the peaks rule, where material 1's labels start)
+                model = dataclasses.replace(config.model, num_materials=bounds.K)
+                if model.first_label_threshold is None and bounds.details.get("first_label_threshold") is not None:
+                    model = dataclasses.replace(model, first_label_threshold=float(bounds.details["first_label_threshold"]))
+                config = dataclasses.replace(config, num_materials=bounds.K, model=model)
                 save_run_config(run_dir, config)
             warm = self.warm_start()
             trainer = train_stage(config, scene, run_dir, epochs=config.trainer.epochs, device=device,
