@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
-                    "by BIC), and under dice_valleys the same with the cpu preset's K rule and GMM starts (presets.TABLE['cpu'])")
+                    "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule and GMM starts (presets.TABLE['cpu'])")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)
@@ -144,10 +144,11 @@ def main(argv=None) -> int:
                 mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=cpu["bounds_k_rule"],
                                              min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"],
                                              surfaces=scene.membership is not None)
-                row["dice_valleys"] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
-                row["dice_mean_valleys"] = mv["dice_mean"]
-                row["chamfer_mm_mean_valleys"] = mv.get("chamfer_mm_mean")
-                row["chamfer_mm_valleys"] = per_material_chamfer(mv)
+                row["cpu_rule"] = {"k_rule": cpu["bounds_k_rule"], "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"]}
+                row["dice_cpu_rule"] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
+                row["dice_mean_cpu_rule"] = mv["dice_mean"]
+                row["chamfer_mm_mean_cpu_rule"] = mv.get("chamfer_mm_mean")
+                row["chamfer_mm_cpu_rule"] = per_material_chamfer(mv)
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
@@ -165,8 +166,8 @@ def main(argv=None) -> int:
                     "whole call; residual: the algorithm's last reported ||Ax-b||/||b|| (SART family: sweep residual); "
                     "load_avg_1m: machine load before/after the run (shared machine)"
                     + ("; dice / chamfer_mm (per material, mm) / *_mean: the volume thresholded at GMM bounds fitted on "
-                       "itself with the paper's K rule (K = 1..4 by BIC), air at 0 a matching candidate; *_valleys: the "
-                       "same with the cpu preset's K rule (K = 1..8, bic-valleys, best of 3 GMM starts); a material no "
+                       "itself with the paper's K rule (K = 1..4 by BIC), air at 0 a matching candidate; *_cpu_rule: the "
+                       "same with the cpu preset's K rule (cpu_rule: the rule, the rule that decided K, K); a material no "
                        "class was matched to has Dice 0 and no Chamfer" if args.dice else ""),
             "rows": [],
         }

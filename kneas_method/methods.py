@@ -188,13 +188,14 @@ class TrainConfig(RunConfig):
         bounds_method: GMM boundary rule for automatic bounds: ``gmm`` (paper, SPEC §4),
             ``quantile`` or ``bayes`` (options beside the paper's; see ``bounds.GMMBounds``).
         bounds_max_materials: automatic bounds try K = 1..this (paper 4; None = the preset's:
-            paper and tiny 4, cpu 6).
+            paper and tiny 4, cpu 8).
         bounds_k_rule: how automatic bounds pick K: ``bic`` (paper: the lowest BIC),
             ``bic-valleys`` (the lowest BIC among K whose boundaries are all valleys of the
             mixture density) or ``peaks`` (one material per peak of the volume's histogram,
             boundaries at its valleys, no mixture and no seed, material 1's labels from half
             its peak (``model.first_label_threshold``); bic-valleys where the histogram has
-            fewer than two peaks); None = the preset's: cpu bic-valleys, else bic.
+            fewer than two peaks); None = the preset's: cpu peaks (bic-valleys with a
+            ``bounds_method`` other than ``gmm``), else bic.
         bounds_min_std: the GMM components' smallest standard deviation, as a fraction of
             the 99.5th-percentile attenuation (0 = sklearn's default regulariser; None = the
             preset's: 0 in every preset). Keeps a TV-flattened material from taking a spike component.

@@ -384,5 +384,8 @@ def test_volume_material_metrics_of_the_exact_label_volume_are_perfect():
     exact = np.concatenate([[0.0], gt_levels(scene)])[scene.labels].astype(np.float32)  # piecewise constant
     m = volume_material_metrics(exact, scene, surfaces=False)
     assert m["K"] == 3 and m["dice_mean"] == pytest.approx(1.0)
+    assert m["gmm"]["k_rule"] == m["gmm"]["k_rule_used"] == "bic"
+    peaks = volume_material_metrics(exact, scene, k_rule="peaks", surfaces=False)  # the cpu preset's rule: one class per level
+    assert peaks["K"] == 3 and peaks["gmm"]["k_rule_used"] == "peaks" and peaks["dice_mean"] == pytest.approx(1.0)
     noisy = exact + np.random.default_rng(0).normal(0, 0.08, exact.shape).astype(np.float32)
     assert volume_material_metrics(noisy, scene, surfaces=False)["dice_mean"] < 0.99

@@ -111,12 +111,17 @@ def test_cpu_preset_scores_projections_of_the_volume_unless_told_not_to():
         presets.resolve(dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, eval_projections="exact")))
 
 
-def test_cpu_preset_picks_k_by_valleys_unless_told_otherwise():
+def test_cpu_preset_picks_k_by_histogram_peaks_unless_told_otherwise():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cpu = presets.resolve(c)
-    assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std, cpu.bounds_gmm_restarts) == (8, "bic-valleys", 0.0, 3)
+    assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std, cpu.bounds_gmm_restarts) == (8, "peaks", 0.0, 3)
     note = next(n for n in presets.procedure_notes(cpu) if n.startswith("materials:"))
-    assert note.startswith("materials: K = 1..8") and "the best of 3 GMM starts" in note and "--bounds-gmm-restarts 1" in note
+    assert note.startswith("materials: one per peak") and "K = 1..8" in note and "the best of 3 GMM starts" in note
+    valleys = presets.resolve(dataclasses.replace(c, bounds_k_rule="bic-valleys"))
+    note = next(n for n in presets.procedure_notes(valleys) if n.startswith("materials:"))
+    assert note.startswith("materials: K = 1..8") and "--bounds-gmm-restarts 1" in note
+    # a mixture boundary rule asked for (no K rule given): the preset's mixture K rule, not an error
+    assert presets.resolve(dataclasses.replace(c, bounds_method="quantile")).bounds_k_rule == "bic-valleys"
     for name in ("paper", "tiny"):  # the paper's K = 1..4 by BIC, sklearn's default regulariser, one start
         other = presets.resolve(dataclasses.replace(c, preset=name))
         assert (other.bounds_max_materials, other.bounds_k_rule, other.bounds_min_std, other.bounds_gmm_restarts) == (4, "bic", 0.0, 1)

@@ -398,7 +398,8 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
                   "class k -> GT label with the nearest attenuation level (air at 0 included) to the class's mean mu; surfaces: iso-surfaces of the "
                   "thresholds (marching cubes on the voxel grid) vs exact membership on a grid refined by 2, mm")
     settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_),
-                "gmm": {"max_components": max_components, "k_rule": k_rule, "min_std": min_std, "restarts": int(restarts)}}
+                "gmm": {"max_components": max_components, "k_rule": k_rule, "k_rule_used": gmm.k_rule_used_, "min_std": min_std,
+                        "restarts": int(restarts)}}
     return _score_materials(scene, pred, mean_mu, (lambda fgeo: fields) if surfaces else None, fine=2,
                             definition=definition, settings=settings, field_geometry=scene.geometry)
 
