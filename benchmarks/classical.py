@@ -89,7 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
-                    "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule and GMM starts (presets.TABLE['cpu'])")
+                    "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule (presets.TABLE['cpu']: the histogram's "
+                    "peaks, bic-valleys with its GMM starts where there are fewer than two)")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)

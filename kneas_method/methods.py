@@ -29,9 +29,10 @@ configuration:
 | fdk | — | classical: FDK / FBP, no model | — | — | — |
 | sart, os-sart, cgls, asd-pocs | — | classical iterative (SPEC §7), no model | — | — | — |
 
-K of the K-material methods (kselector*, k-neas) is picked by BIC from the GMM
-fit (SPEC §4) when ``num_materials`` is None (the default) and the bounds are
-automatic; ``--num-materials K`` fixes it; a ``--bounds`` file gives it. The
+K of the K-material methods (kselector*, k-neas) is picked by the preset's K rule
+when ``num_materials`` is None (the default) and the bounds are automatic (paper
+and tiny: the BIC of the GMM fit, SPEC §4; cpu: the peaks of the bounds volume's
+histogram, ``bic-valleys`` where it has fewer than two); ``--num-materials K`` fixes it; a ``--bounds`` file gives it. The
 method's ``model.num_materials`` (3) is only the default shown by a dry run.
 """
 
@@ -202,7 +203,7 @@ class TrainConfig(RunConfig):
         bounds_gmm_restarts: k-means starts per GMM fit, the best kept (scikit-learn's ``n_init``;
             paper and tiny 1, cpu 3; None = the preset's). One start can end in a poor local
             optimum whose BIC then misjudges K.
-        bounds_volume: the volume the automatic bounds' GMM is fitted on: ``prior``
+        bounds_volume: the volume the automatic bounds are computed from: ``prior``
             (the paper: a trained NeAS-1M model, SPEC §4) or a classical reconstruction
             of the training views (``fdk``, ``sart``, ``asd-pocs``, ...: no prior training;
             an option beside the paper's procedure). None = the preset's (paper: prior; cpu: asd-pocs).

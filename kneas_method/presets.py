@@ -44,7 +44,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # samples, the exact eikonal on every sample with lambda 1e-5 (the paper's 0.01
     # dominates the ~1e-5 intensity loss of NAF-convention data in a short run), s
     # starting at 100, 64 evenly spaced evaluation samples in 256-ray chunks, a
-    # 40-epoch model (2000 steps on 50 views). Bounds: GMM on the ASD-POCS reconstruction,
+    # 40-epoch model (2000 steps on 50 views). Bounds from the ASD-POCS reconstruction,
     # and a 300-step warm start fitting the model to it (options beside the paper's
     # procedure; see README "Presets" for what each lever measured on foot:
     # 22.0 dB with the paper's procedure -> 33.9 dB from FDK, 34.2 from SART, 34.7 from ASD-POCS),
@@ -217,7 +217,9 @@ def procedure_notes(config: TrainConfig) -> list[str]:
     if not isinstance(config, TrainConfig):
         return notes
     if automatic_bounds(config) and config.bounds_volume != "prior":
-        notes.append(f"bounds: the GMM is fitted on the {config.bounds_volume.upper()} reconstruction, not on a trained NeAS-1M prior "
+        how = ("from the peaks of the {v} reconstruction's histogram (a GMM on it where it has fewer than two), not from"
+               if config.bounds_k_rule == "peaks" and k_from_data(config) else "the GMM is fitted on the {v} reconstruction, not on")
+        notes.append(f"bounds: {how.format(v=config.bounds_volume.upper())} a trained NeAS-1M prior "
                      "(an option beside the paper's procedure; --bounds-volume prior for the paper's)")
     if k_from_data(config) and automatic_bounds(config) and (
             config.bounds_max_materials != 4 or config.bounds_k_rule != "bic" or config.bounds_min_std

@@ -117,6 +117,7 @@ def test_cpu_preset_picks_k_by_histogram_peaks_unless_told_otherwise():
     assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std, cpu.bounds_gmm_restarts) == (8, "peaks", 0.0, 3)
     note = next(n for n in presets.procedure_notes(cpu) if n.startswith("materials:"))
     assert note.startswith("materials: one per peak") and "K = 1..8" in note and "the best of 3 GMM starts" in note
+    assert any(n.startswith("bounds: from the peaks of the ASD-POCS reconstruction's histogram") for n in presets.procedure_notes(cpu))
     valleys = presets.resolve(dataclasses.replace(c, bounds_k_rule="bic-valleys"))
     note = next(n for n in presets.procedure_notes(valleys) if n.startswith("materials:"))
     assert note.startswith("materials: K = 1..8") and "--bounds-gmm-restarts 1" in note

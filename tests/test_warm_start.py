@@ -283,6 +283,35 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     assert cold["warm_start_time_s"] == 0 and metrics["psnr3d"] > cold["psnr3d"]
 
 
+def test_peaks_bounds_set_where_material_one_labels_start_in_the_saved_run(small_scene, tmp_path, capsys, monkeypatch):
+    """The peaks rule's ``first_label_threshold`` (half the first peak) travels from the bounds
+    stage into the run's saved config, which re-evaluation and ``--resume`` read. The bounds
+    volume is swapped for two noisy plateaus at 0.3 and 0.8, whose histogram has two peaks."""
+    from kneas_method.engine import neural_pipeline
+
+    real = neural_pipeline.estimate_bounds
+
+    def two_plateaus(config, scene, run_dir, device, volume=None):
+        v = np.asarray(volume, dtype=np.float64)
+        inside = v > 0.5 * np.percentile(v, 99)
+        rng = np.random.default_rng(0)
+        plateaus = np.where(v > np.percentile(v[inside], 70), 0.8, 0.3) + rng.normal(0, 1e-3, v.shape)
+        return real(config, scene, run_dir, device, volume=np.where(inside, plateaus, 0.0))
+
+    monkeypatch.setattr(neural_pipeline, "estimate_bounds", two_plateaus)
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),
+                          "--bounds-volume", "fdk", "--bounds-k-rule", "peaks", "--trainer.warm-start", "fdk",
+                          "--trainer.warm-start-steps", "5", "--trainer.epochs", "1"], capsys)
+    assert code == 0, err
+    run_dir = run_dir_of(out)
+    bounds = json.loads((run_dir / "bounds.json").read_text())
+    assert bounds["K"] == 2 and bounds["k_chosen_by"] == "peaks"
+    assert bounds["first_label_threshold"] == pytest.approx(0.15, abs=0.003)
+    saved = json.loads((run_dir / "config.json").read_text())
+    assert saved["model"]["first_label_threshold"] == pytest.approx(bounds["first_label_threshold"])
+    assert load_run(run_dir).config.model.first_label_threshold == pytest.approx(bounds["first_label_threshold"])
+
+
 def test_occupancy_term_gives_a_gradient_where_omega_is_saturated():
     """A material that starts far "outside" (Omega ~ 0) gets no MSE gradient; the occupancy
     cross-entropy still pulls its distance down where the target reaches its bounds."""
