@@ -253,6 +253,10 @@ class CTModel(nn.Module):
         if not self.has_surfaces:
             raise ConfigError("this model has no materials (no SDF), so it takes no attenuation bounds")
         self.attenuation.set_bounds(alphas, betas)
+        first, top = self.config.first_label_threshold, float(alphas[0]) + float(betas[0])
+        if first is not None and not (math.isfinite(first) and 0 < first < top):
+            raise ConfigError(f"model.first_label_threshold {first!r} must lie inside material 1's range (0, {top:.4g}); "
+                              "give a value between air and the first material's level, or leave it out")
 
     def set_occupancy(self, occupied: torch.Tensor, lo, hi) -> None:
         """The empty-space grid: ``occupied [G, G, G]`` (bool) over the box ``[lo, hi]`` (model units)."""
@@ -415,13 +419,9 @@ class CTModel(nn.Module):
         and for k = 1 ``model.first_label_threshold``, by default ``alpha_1 / 2`` (half way
         from air to the first material's top)."""
         alphas, betas = self.attenuation.alphas, self.attenuation.betas
-        first = self.config.first_label_threshold
+        first = self.config.first_label_threshold  # checked against the bounds in set_bounds, not here (every step)
         if first is None:
             return torch.cat([alphas[:1] / 2, betas[1:]])
-        top = float(betas[0] + alphas[0])
-        if not (math.isfinite(first) and 0 < first < top):
-            raise ConfigError(f"model.first_label_threshold {first!r} must lie inside material 1's range (0, {top:.4g}); "
-                              "give a value between air and the first material's level, or leave it out")
         return torch.cat([alphas.new_tensor([float(first)]), betas[1:]])
 
     def occupancy_loss(self, distances: torch.Tensor, targets: torch.Tensor,

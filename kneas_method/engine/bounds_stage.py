@@ -233,5 +233,5 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     if gmm.gmm_ is None:  # the peaks rule: material 1's labels start half way from air to its level
         details["first_label_threshold"] = 0.5 * float(gmm.means_[0])
     return BoundsResult([float(v) for v in gmm.alphas_], [float(v) for v in gmm.betas_], int(gmm.n_components_),
-                        ("histogram peaks" if gmm.gmm_ is None else f"gmm ({config.bounds_method})") + f" on the {what}",
+                        f"{how.lower()} on the {what}",
                         0.0 if prior is None else prior.seconds, details)
