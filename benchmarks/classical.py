@@ -5,12 +5,16 @@
     python benchmarks/classical.py --scenes heldout:head-256,heldout:jaw-noisy --dice   # benchmarks/heldout.py
     python benchmarks/classical.py --runs "sart:iterations=5" "sart:iterations=10" "cgls:iterations=30" \\
         --threads 2 --out benchmarks/results/classical_cpu.json
+    python benchmarks/classical.py --scenes foot,jaw --runs "asd-pocs:iterations=40" --trace   # every count 1..40
 
 A run is ``algorithm[:key=value,...]`` (``fdk``, ``sart``, ``os-sart``, ``cgls``,
 ``asd-pocs`` with fields of ``ReconstructionOptions``: ``iterations``, ``relaxation``,
 ``subsets``, ``positivity``, ``backprojector``, ``tv_steps``, ``tv_alpha``, ``filter``;
 values are parsed as Python literals): the same call ``kneas-train ALGORITHM`` makes
-(``kneas_method.classical.reconstruct``). ``--dice`` adds the per-material Dice and
+(``kneas_method.classical.reconstruct``). ``--trace`` also scores the volume after every
+iteration of each run (psnr3d / ssim3d against the truth; ASD-POCS's iterate clamped at 0 as
+its result is), so one 40-iteration run gives the best count from 1 to 40 (``trace`` and
+``best`` in the JSON). ``--dice`` adds the per-material Dice and
 Chamfer of ``kneas-eval`` (the volume thresholded at the GMM bounds fitted on it). ``--algorithms`` with ``--iterations`` is a shorthand for runs
 with default settings. Every run reconstructs from the scene's training views
 on its own voxel grid; PSNR/SSIM are SPEC §5's primary 3D figures
@@ -91,6 +95,8 @@ def main(argv=None) -> int:
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
                     "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule (presets.TABLE['cpu']: the histogram's "
                     "peaks, bic-valleys with its GMM starts where there are fewer than two)")
+    ap.add_argument("--trace", action="store_true", help="score the volume after every iteration (psnr3d / ssim3d) and "
+                    "report the best iteration count of each run; needs ground truth")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)
@@ -124,8 +130,16 @@ def main(argv=None) -> int:
                 options = ReconstructionOptions(**kwargs)
             except TypeError as exc:
                 raise SystemExit(f"error: run {name}:{kwargs}: {exc}; use fields of ReconstructionOptions") from None
+            trace = []
+
+            def score(i, x, name=name):
+                if scene.image is not None:
+                    v = (x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy()
+                    trace.append({"iteration": i, **{k: round(float(v_), 4) for k, v_ in volume_metrics(v, scene.image).items()
+                                                     if k in ("psnr3d", "ssim3d")}})
+
             rec = reconstruct(name, scene, options, device=args.device,
-                              progress=lambda i, n, r: residuals.append(r))
+                              progress=lambda i, n, r: residuals.append(r), iterates=score if args.trace else None)
             vol, seconds = rec.volume, rec.seconds
             load1 = os.getloadavg()[0]
             m = volume_metrics(vol, scene.image) if scene.image is not None else {}
@@ -135,6 +149,9 @@ def main(argv=None) -> int:
                 "residual": residuals[-1] if residuals else None, "residuals": residuals,
                 "load_avg_1m": [round(load0, 2), round(load1, 2)],
             }
+            if trace:
+                row["trace"] = trace
+                row["best"] = max(trace, key=lambda t: t["psnr3d"])
             if args.dice and scene.labels is not None:
                 mm = volume_material_metrics(vol, scene, surfaces=scene.membership is not None)
                 row["dice"] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
@@ -154,7 +171,8 @@ def main(argv=None) -> int:
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
                   f"{row['ssim3d'] or float('nan'):7.3f} {seconds:8.1f} {row['residual'] or float('nan'):8.4f} {load0:4.1f}/{load1:4.1f}"
-                  + (f"  dice {row['dice']}" if "dice" in row else ""),
+                  + (f"  dice {row['dice']}" if "dice" in row else "")
+                  + (f"  best psnr3d {row['best']['psnr3d']:.2f} at {row['best']['iteration']} iterations" if "best" in row else ""),
                   flush=True)
     if args.out:
         path = Path(args.out)
@@ -169,7 +187,9 @@ def main(argv=None) -> int:
                     + ("; dice / chamfer_mm (per material, mm) / *_mean: the volume thresholded at GMM bounds fitted on "
                        "itself with the paper's K rule (K = 1..4 by BIC), air at 0 a matching candidate; *_cpu_rule: the "
                        "same with the cpu preset's K rule (cpu_rule: the rule, the rule that decided K, K); a material no "
-                       "class was matched to has Dice 0 and no Chamfer" if args.dice else ""),
+                       "class was matched to has Dice 0 and no Chamfer" if args.dice else "")
+                    + ("; trace: psnr3d / ssim3d after every iteration (the seconds include scoring them); best: its "
+                       "highest psnr3d" if args.trace else ""),
             "rows": [],
         }
         if args.append and path.is_file():

@@ -65,7 +65,9 @@ def heldout_scene(name: str):
 
     head = SimulationConfig(n_voxel=128, voxel_mm=1.6, n_detector=256, n_train=50, n_val=10)
     if name == "head-256":
-        return simulate_phantom(head_phantom(), head)
+        scene = simulate_phantom(head_phantom(), head)
+        scene.name = "head-256"  # the phantom is "head"; the scene is named as its pickle
+        return scene
     if name == "jaw-noisy":
         scene = simulate_phantom("jaw", SimulationConfig(n_train=50, n_val=10, noise=True))
         scene.name = "jaw-noisy"

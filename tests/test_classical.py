@@ -232,6 +232,25 @@ def test_cgls_with_the_voxel_backprojector_converges(tiny):
     assert psnr3d(vol, tiny.image) > psnr3d(np.zeros_like(vol), tiny.image) + 5
 
 
+@pytest.mark.parametrize("name", ["sart", "os-sart", "cgls", "asd-pocs"])
+def test_iterates_are_the_volumes_of_shorter_runs(tiny, name):
+    # one 4-iteration run hands out the volume after each iteration: the iterate after n
+    # iterations is what an n-iteration run returns (ASD-POCS clamps at 0 on return only)
+    from kneas_method.classical.iterative import ALGORITHMS
+
+    f = ALGORITHMS[name]
+    args = (tiny.train.projections, tiny.geometry, tiny.train.angles)
+    seen = {}
+    last = f(*args, iterations=4, iterates=lambda i, x: seen.__setitem__(i, x.detach().cpu().numpy().copy()))
+    assert sorted(seen) == [1, 2, 3, 4]
+    for n in (1, 3):
+        short = f(*args, iterations=n)
+        got = np.clip(seen[n], 0, None) if name == "asd-pocs" else seen[n]
+        np.testing.assert_allclose(got, short, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.clip(seen[4], 0, None) if name == "asd-pocs" else seen[4], last, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(seen[1], seen[4])
+
+
 @pytest.fixture(scope="module")
 def fine_detector():
     """``tiny`` with a 64^2 detector: pixels at the isocentre are 0.56 voxels wide."""

@@ -33,7 +33,10 @@ Every algorithm accepts ``progress(iteration, total, residual)``, called after
 each iteration with the relative data residual ``‖A x − b‖ / ‖b‖``: exact for
 CGLS; for the SART family it is the residual each view (subset) had just before
 its own update in that sweep, which costs nothing extra and trails the exact
-residual of the returned volume by at most one sweep.
+residual of the returned volume by at most one sweep. ``iterates(iteration, x)`` receives
+the current volume tensor after each iteration (read it, do not change it; ASD-POCS's and
+CGLS's iterate is clamped at 0 only on return), so one run scores every iteration count
+(``benchmarks/iteration_trace.py``).
 
 Weights: ``W = 1 / A 1`` per ray (rays that cross less than half a voxel of the
 volume get weight 0, as in TIGRE) is computed once per call; the per-view or
@@ -58,6 +61,8 @@ __all__ = ["sart", "os_sart", "cgls", "asd_pocs", "choose_backprojector", "pixel
            "view_order", "interleaved_subsets", "total_variation", "tv_gradient", "ALGORITHMS"]
 
 Progress = Optional[Callable[[int, int, float], None]]
+# ``iterates(iteration, x)`` after each iteration, ``x`` the current volume tensor (read it, do not change it)
+Iterates = Optional[Callable[[int, torch.Tensor], None]]
 
 # Per-view / per-subset normalisers Aᵀ1 are stored when they take at most this many bytes.
 NORMALISER_CACHE_BYTES = 1 << 30
@@ -266,7 +271,7 @@ class _SartKernel:
 
 
 def _run_sart(projections, geometry, angles, subsets_of, *, iterations, relaxation, positivity, backprojector, init,
-              device, progress, return_tensor):
+              device, progress, return_tensor, iterates=None):
     iterations = _check_iterations("iterations", iterations)
     relaxation = _check_positive("relaxation (lambda)", relaxation, upper=2.0)
     proj, b, x = _setup(projections, geometry, angles, device, init)
@@ -277,13 +282,15 @@ def _run_sart(projections, geometry, angles, subsets_of, *, iterations, relaxati
         x, res = kernel.sweep(x, relaxation, positivity)
         if progress is not None:
             progress(it + 1, iterations, res)
+        if iterates is not None:
+            iterates(it + 1, x)
     return _finish(x, return_tensor)
 
 
 # -------------------------------------------------------------- algorithms
 def sart(projections, geometry: Geometry, angles, *, iterations: int = 10, relaxation: float = 0.5,
          positivity: bool = True, order: str = "spread", backprojector: str = "auto", init=None, device=None,
-         progress: Progress = None, return_tensor: bool = False):
+         progress: Progress = None, return_tensor: bool = False, iterates: Iterates = None):
     """SART (Andersen & Kak 1984): one update per view, views in a spread order.
 
     For each view ``v``: ``x ← max(0, x + λ · Bᵥ(W ⊙ (bᵥ − Aᵥx)) / Bᵥ1)`` with ``W = 1 / A1``
@@ -303,6 +310,8 @@ def sart(projections, geometry: Geometry, angles, *, iterations: int = 10, relax
         device: torch device (default: the projections', if a tensor, else CPU).
         progress: ``progress(iteration, total, residual)`` after each sweep.
         return_tensor: return a tensor on ``device`` instead of numpy.
+        iterates: ``iterates(iteration, x)`` after each sweep with the current volume tensor
+            (read-only; e.g. to score every iteration count in one run).
 
     Returns:
         [nx, ny, nz] float32 attenuation in data units (1/m).
@@ -312,12 +321,12 @@ def sart(projections, geometry: Geometry, angles, *, iterations: int = 10, relax
 
     return _run_sart(projections, geometry, angles, each_view, iterations=iterations, relaxation=relaxation,
                      positivity=positivity, backprojector=backprojector, init=init, device=device, progress=progress,
-                     return_tensor=return_tensor)
+                     return_tensor=return_tensor, iterates=iterates)
 
 
 def os_sart(projections, geometry: Geometry, angles, *, subsets: int = 10, iterations: int = 10,
             relaxation: float = 1.0, positivity: bool = True, backprojector: str = "auto", init=None, device=None,
-            progress: Progress = None, return_tensor: bool = False):
+            progress: Progress = None, return_tensor: bool = False, iterates: Iterates = None):
     """OS-SART: the SART update applied to ``subsets`` interleaved subsets of views
     (one update per subset, subsets in a spread order); ``subsets = N`` is SART and
     ``subsets = 1`` is SIRT.
@@ -336,11 +345,11 @@ def os_sart(projections, geometry: Geometry, angles, *, subsets: int = 10, itera
         raise ConfigError(f"subsets is {subsets}; choose 1..{n_views} (the number of views)")
     return _run_sart(projections, geometry, angles, lambda a: interleaved_subsets(a, int(subsets)),
                      iterations=iterations, relaxation=relaxation, positivity=positivity, backprojector=backprojector,
-                     init=init, device=device, progress=progress, return_tensor=return_tensor)
+                     init=init, device=device, progress=progress, return_tensor=return_tensor, iterates=iterates)
 
 
 def cgls(projections, geometry: Geometry, angles, *, iterations: int = 30, backprojector: str = "auto", init=None,
-         device=None, progress: Progress = None, return_tensor: bool = False):
+         device=None, progress: Progress = None, return_tensor: bool = False, iterates: Iterates = None):
     """CGLS: conjugate gradients on the normal equations ``BA x = Bb`` (no positivity;
     stopping early is the regulariser).
 
@@ -394,13 +403,15 @@ def cgls(projections, geometry: Geometry, angles, *, iterations: int = 30, backp
                 res = _norm(r) / b_norm
         if progress is not None:
             progress(it + 1, iterations, res)
+        if iterates is not None:
+            iterates(it + 1, x)
     return _finish(x, return_tensor)
 
 
 def asd_pocs(projections, geometry: Geometry, angles, *, iterations: int = 10, n_tv: int = 20, alpha: float = 0.01,
              alpha_red: float = 0.95, r_max: float = 0.95, relaxation: float = 1.0, relaxation_red: float = 0.99,
              subsets: Optional[int] = None, epsilon: Optional[float] = None, backprojector: str = "auto", init=None,
-             device=None, progress: Progress = None, return_tensor: bool = False):
+             device=None, progress: Progress = None, return_tensor: bool = False, iterates: Iterates = None):
     """ASD-POCS (Sidky & Pan 2008): a SART sweep + positivity, then ``n_tv`` steepest-descent
     steps on the isotropic 3-D total variation whose length adapts to the data step.
 
@@ -458,6 +469,8 @@ def asd_pocs(projections, geometry: Geometry, angles, *, iterations: int = 10, n
         lam *= relaxation_red
         if progress is not None:
             progress(it + 1, iterations, res)
+        if iterates is not None:
+            iterates(it + 1, x)
     return _finish(x.clamp_(min=0.0), return_tensor)
 
 

@@ -47,11 +47,13 @@ def algorithm_settings(algorithm: str, options: ReconstructionOptions, n_views: 
 
 
 def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] = None, *, device="cpu",
-                progress: Optional[Callable[[int, int, float], None]] = None) -> Reconstruction:
+                progress: Optional[Callable[[int, int, float], None]] = None,
+                iterates: Optional[Callable[[int, "torch.Tensor"], None]] = None) -> Reconstruction:
     """Reconstruct ``scene``'s training views with ``algorithm`` (one of :data:`ALGORITHMS`).
 
     ``progress(iteration, total, residual)`` is called by the iterative methods after each iteration
-    (``residual``: relative data residual ‖Ax − b‖ / ‖b‖)."""
+    (``residual``: relative data residual ‖Ax − b‖ / ‖b‖), and ``iterates(iteration, x)`` with the
+    current volume tensor (read-only; FDK has no iterations and calls neither)."""
     options = options or ReconstructionOptions()
     if algorithm not in ALGORITHMS:
         raise ConfigError(f"classical algorithm {algorithm!r} is not known; use one of {', '.join(ALGORITHMS)}")
@@ -72,6 +74,7 @@ def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] 
         if algorithm == "asd-pocs":
             s.update(n_tv=s.pop("tv_steps"), alpha=s.pop("tv_alpha"))
         function = iterative.ALGORITHMS[algorithm]
-        volume = function(scene.train.projections, scene.geometry, scene.train.angles, device=device, progress=progress, **s)
+        volume = function(scene.train.projections, scene.geometry, scene.train.angles, device=device, progress=progress,
+                          iterates=iterates, **s)
     return Reconstruction(np.asarray(volume, dtype=np.float32), time.perf_counter() - t0,
                           {"algorithm": algorithm, **settings, "views": len(scene.train)})
