@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     from kneas_method.classical.options import ALGORITHMS, ReconstructionOptions
     from kneas_method.classical.reconstruct import reconstruct
     from kneas_method.data.scenes import resolve_scene
-    from kneas_method.evaluation.metrics import volume_metrics
+    from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
     from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.presets import TABLE
 
@@ -135,8 +135,8 @@ def main(argv=None) -> int:
             def score(i, x, name=name):
                 if scene.image is not None:
                     v = (x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy()
-                    trace.append({"iteration": i, **{k: round(float(v_), 4) for k, v_ in volume_metrics(v, scene.image).items()
-                                                     if k in ("psnr3d", "ssim3d")}})
+                    trace.append({"iteration": i, "psnr3d": round(psnr3d(v, scene.image), 4),
+                                  "ssim3d": round(ssim3d(v, scene.image), 4)})
 
             rec = reconstruct(name, scene, options, device=args.device,
                               progress=lambda i, n, r: residuals.append(r), iterates=score if args.trace else None)
