@@ -123,6 +123,9 @@ def main(argv=None) -> int:
             scene = heldout_scene(spec.split(":", 1)[1])
         else:
             scene = resolve_scene(spec)
+        if args.trace and scene.image is None:
+            raise SystemExit(f"error: --trace scores each iteration against the ground truth, and scene {spec!r} has none; "
+                             "drop --trace for this scene")
         for name, kwargs in runs:
             residuals = []
             load0 = os.getloadavg()[0]
@@ -133,10 +136,9 @@ def main(argv=None) -> int:
             trace = []
 
             def score(i, x, name=name):
-                if scene.image is not None:
-                    v = (x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy()
-                    trace.append({"iteration": i, "psnr3d": round(psnr3d(v, scene.image), 4),
-                                  "ssim3d": round(ssim3d(v, scene.image), 4)})
+                v = (x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy()
+                trace.append({"iteration": i, "psnr3d": round(psnr3d(v, scene.image), 4),
+                              "ssim3d": round(ssim3d(v, scene.image), 4)})
 
             rec = reconstruct(name, scene, options, device=args.device,
                               progress=lambda i, n, r: residuals.append(r), iterates=score if args.trace else None)

@@ -36,7 +36,7 @@ its own update in that sweep, which costs nothing extra and trails the exact
 residual of the returned volume by at most one sweep. ``iterates(iteration, x)`` receives
 the current volume tensor after each iteration (read it, do not change it; ASD-POCS's and
 CGLS's iterate is clamped at 0 only on return), so one run scores every iteration count
-(``benchmarks/iteration_trace.py``).
+(``benchmarks/classical.py --trace``).
 
 Weights: ``W = 1 / A 1`` per ray (rays that cross less than half a voxel of the
 volume get weight 0, as in TIGRE) is computed once per call; the per-view or
