@@ -104,6 +104,12 @@ class TrainerConfig:
             (``engine.anchor.label_interior``): at the volume's blurred edges its labels are
             wrong, and there the projections decide. 0 = the MSE alone; None = the preset's
             (paper 0; cpu 0.03).
+        anchor_edge_contrast: each voxel of that prior counts ``1 / (1 + (g / g0)^2)`` in its MSE,
+            ``g`` the volume's gradient per voxel and ``g0`` this fraction of its 99.5th percentile
+            (``engine.anchor.edge_trust``): a classical volume's error grows with its gradient, so
+            its sharp edges are held less and the projections place them; faint edges keep most
+            of their weight. 0 = every voxel alike; None = the preset's (0 in every preset: measured
+            in README "Presets", not a gain on every scene).
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -126,6 +132,7 @@ class TrainerConfig:
     warm_start_anchor: Optional[float] = None
     anchor_points: int = 4096
     anchor_occupancy: Optional[float] = None
+    anchor_edge_contrast: Optional[float] = None
     log_every: int = 50
     max_bad_steps: int = 5
 

@@ -36,7 +36,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0},
+                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
@@ -75,7 +75,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": True, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
         "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
-                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03},
+                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "peaks", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },
     "tiny": {
@@ -84,7 +84,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0},
+                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
 }
@@ -166,7 +166,7 @@ def resolve(config: RunConfig) -> RunConfig:
         raise ConfigError(f"trainer.warm_start_steps must be a whole number >= 0, got {trainer.warm_start_steps!r}")
     if not (isinstance(trainer.warm_start_points, int) and trainer.warm_start_points >= 1):
         raise ConfigError(f"trainer.warm_start_points must be a whole number >= 1, got {trainer.warm_start_points!r}")
-    for weight in ("warm_start_occupancy", "anchor_occupancy"):
+    for weight in ("warm_start_occupancy", "anchor_occupancy", "anchor_edge_contrast"):
         value = getattr(trainer, weight)
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
             raise ConfigError(f"trainer.{weight} must be a number >= 0, got {value!r}")
@@ -183,6 +183,11 @@ def resolve(config: RunConfig) -> RunConfig:
     elif trainer.anchor_occupancy and not trainer.warm_start_anchor:
         raise ConfigError("trainer.anchor_occupancy weighs the warm-start volume's labels inside the anchor, but there is no anchor "
                           "(warm_start_anchor 0); give --trainer.warm-start-anchor 0.01 or leave --trainer.anchor-occupancy out")
+    if not trainer.warm_start_anchor and config.trainer.anchor_edge_contrast is None:
+        trainer = dataclasses.replace(trainer, anchor_edge_contrast=0.0)  # no anchor, no weights in it
+    elif trainer.anchor_edge_contrast and not trainer.warm_start_anchor:
+        raise ConfigError("trainer.anchor_edge_contrast weighs the warm-start volume's voxels inside the anchor, but there is no anchor "
+                          "(warm_start_anchor 0); give --trainer.warm-start-anchor 0.01 or leave --trainer.anchor-edge-contrast out")
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}
@@ -245,6 +250,8 @@ def procedure_notes(config: TrainConfig) -> list[str]:
                      f"volume (weight {config.trainer.warm_start_anchor:g}"
                      + (f", and to its labels away from its edges, weight {config.trainer.anchor_occupancy:g} inside it"
                         if config.trainer.anchor_occupancy and field_has_surfaces(config.model) else "")
+                     + (f", each voxel's value held less where the volume is steep (--trainer.anchor-edge-contrast "
+                        f"{config.trainer.anchor_edge_contrast:g}; 0 holds every voxel alike)" if config.trainer.anchor_edge_contrast else "")
                      + "; not in the paper; --trainer.warm-start-anchor 0 turns it off)")
     if config.trainer.eval_projections == "volume":
         notes.append("evaluation: 2D metrics on the held-out views projected from the volume at the voxel centres (Joseph projector, "

@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from kneas_method import presets, registry
 from kneas_method.data.naf import load_naf
-from kneas_method.engine.anchor import label_interior
+from kneas_method.engine.anchor import edge_trust, gradient_magnitude, label_interior
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.engine.loading import load_run
 from kneas_method.engine.trainer import Trainer
@@ -79,6 +79,46 @@ def test_anchor_loss_is_the_weighted_mse_to_the_prior_volume(small_scene, tmp_pa
         trainer.set_anchor(target[:-1], weight=0.5, points_per_step=10)
     trainer.set_anchor(target, weight=0.0, points_per_step=10)
     assert trainer.anchor is None
+
+
+def test_anchor_edge_contrast_weighs_each_voxel_by_its_trust(small_scene, tmp_path):
+    scene = load_naf(small_scene)
+    target = np.asarray(scene.image, dtype=np.float32)
+    trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    trainer.set_anchor(target, weight=0.5, points_per_step=300, edge_contrast=0.1)
+    trust = edge_trust(target, 0.1).reshape(-1)
+    assert np.array_equal(trainer.anchor.value_weights.numpy(), trust) and trust.min() < 0.5 and trust.max() == 1.0
+    draw = torch.Generator().manual_seed(0)
+    draw.set_state(trainer.generator.get_state())
+    idx = torch.randint(0, target.size, (300,), generator=draw)
+    points = scene.geometry.voxel_centres().reshape(-1, 3)[idx]
+    with torch.no_grad():
+        squared = (trainer.model.query(points)["mu"] - torch.as_tensor(target).reshape(-1)[idx]) ** 2
+        expected = 0.5 * torch.mean(torch.as_tensor(trust)[idx] * squared)
+        assert float(trainer.anchor_loss()) == pytest.approx(float(expected), rel=1e-6)
+        assert float(expected) < float(0.5 * torch.mean(squared))  # the edges count less than in the plain MSE
+    trainer.set_anchor(target, weight=0.5, points_per_step=300)
+    assert trainer.anchor.value_weights is None
+
+
+def test_gradient_magnitude_is_the_slope_per_voxel():
+    x, y, z = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")
+    ramp = 0.03 * x - 0.04 * z + 0.5  # slope 0.05 per voxel
+    assert np.allclose(gradient_magnitude(ramp)[1:-1, 1:-1, 1:-1], 0.05, atol=1e-6)
+    smooth = np.sin(0.3 * x) * np.cos(0.2 * y) + 0.1 * z
+    naive = np.sqrt(sum(g ** 2 for g in np.gradient(smooth)))  # central differences, no smoothing
+    assert np.allclose(gradient_magnitude(smooth)[2:-2, 2:-2, 2:-2], naive[2:-2, 2:-2, 2:-2], atol=0.02)
+
+
+def test_edge_trust_is_one_where_flat_and_half_at_the_contrast_step():
+    volume = np.zeros((16, 16, 16), dtype=np.float32)
+    volume[:, :, 8:] = 1.0  # a step: the 99.5th percentile is 1
+    volume[:, :, 4:8] = np.linspace(0.2, 0.8, 4)  # a ramp of 0.2 per voxel before it
+    trust = edge_trust(volume, 0.2)
+    assert np.allclose(trust[:, :, 5:7], 0.5, atol=1e-6)  # slope 0.2 = contrast x range: half
+    assert np.all(trust[:, :, 12:] == 1.0) and np.all(trust[:, :, :2] == 1.0)  # flat: full weight
+    assert np.all(edge_trust(volume, 0.05)[:, :, 5:7] < trust[:, :, 5:7])  # a smaller contrast trusts edges less
+    assert np.all(edge_trust(np.zeros((4, 4, 4)), 0.2) == 1.0)  # an empty volume: nothing to weigh
 
 
 def test_occupancy_loss_scores_the_labels_the_values_give(small_scene, tmp_path):
@@ -230,12 +270,22 @@ def test_presets_fill_and_check_the_options():
     cpu_cfg = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cold = dataclasses.replace(cpu_cfg, trainer=dataclasses.replace(cpu_cfg.trainer, warm_start="none"))
     assert (cpu.trainer.anchor_occupancy, paper.trainer.anchor_occupancy) == (0.03, 0.0)
+    assert (cpu.trainer.anchor_edge_contrast, paper.trainer.anchor_edge_contrast) == (0.0, 0.0)
+    cpu_default = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    edged = presets.resolve(dataclasses.replace(cpu_default, trainer=dataclasses.replace(cpu_default.trainer, anchor_edge_contrast=0.15)))
+    assert "--trainer.anchor-edge-contrast 0.15" in " ".join(presets.procedure_notes(edged))
+    assert "anchor-edge-contrast" not in " ".join(presets.procedure_notes(cpu))
     assert "its labels away from its edges, weight 0.03" in " ".join(presets.procedure_notes(cpu))
     resolved_cold = presets.resolve(cold)
     assert (resolved_cold.trainer.warm_start_anchor, resolved_cold.trainer.anchor_occupancy) == (0.0, 0.0)  # no anchor, no error
     assert presets.resolve(resolved_cold) == resolved_cold  # a saved run's config resolves to itself
     with pytest.raises(ConfigError, match="no anchor"):
         presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, anchor_occupancy=0.1)))
+    assert presets.resolve(cold).trainer.anchor_edge_contrast == 0.0
+    with pytest.raises(ConfigError, match="no anchor"):
+        presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, anchor_edge_contrast=0.1)))
+    with pytest.raises(ConfigError, match="anchor_edge_contrast"):
+        _tiny_config(anchor_edge_contrast=-0.1)
     with pytest.raises(ConfigError, match="warm_start is none"):
         presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, warm_start_anchor=0.1)))
     with pytest.raises(ConfigError, match="warm_start_anchor"):
@@ -342,9 +392,11 @@ def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path
     ASD-POCS's, and metrics.json says so."""
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),
                           "--bounds-volume", "sart", "--trainer.warm-start", "asd-pocs", "--trainer.warm-start-steps", "20",
-                          "--reconstruction.iterations", "2", "--model.quadrature", "voxel-planes"], capsys)
+                          "--reconstruction.iterations", "2", "--model.quadrature", "voxel-planes",
+                          "--trainer.warm-start-anchor", "0.01", "--trainer.anchor-edge-contrast", "0.2"], capsys)
     assert code == 0, err
     assert "GMM is fitted on the SART reconstruction" in out and "fitting the model to the ASD-POCS reconstruction" in out
+    assert "its values held less at its sharp edges (half at a step of 0.2 of its range per voxel)" in out
     assert "quadrature: one sample where each ray crosses each voxel-centre plane" in out
     run_dir = run_dir_of(out)
     loaded = load_run(run_dir)  # the voxel grid travels in the checkpoint; the rendered evaluation used it

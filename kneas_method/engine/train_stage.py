@@ -59,10 +59,14 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
     anchor = float(config.trainer.warm_start_anchor or 0.0)
     if warm is not None and anchor > 0:
         occupancy = float(config.trainer.anchor_occupancy)
-        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy)
+        edges = float(config.trainer.anchor_edge_contrast or 0.0)
+        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy, edge_contrast=edges)
         labels, hints = "", ["--trainer.warm-start-anchor 0 trains on the projections alone"]
+        if edges > 0:
+            labels = f", its values held less at its sharp edges (half at a step of {edges:g} of its range per voxel)"
+            hints.insert(0, "--trainer.anchor-edge-contrast 0 holds every voxel alike")
         if occupancy > 0 and trainer.model.has_surfaces:
-            labels = f", and its labels away from its edges, weight {occupancy:g} inside it"
+            labels += f", and its labels away from its edges, weight {occupancy:g} inside it"
             hints.insert(0, "--trainer.anchor-occupancy 0 keeps its values only")
         say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, "
             f"{config.trainer.anchor_points:,} voxel centres per step{labels} ({'; '.join(hints)})")

@@ -33,7 +33,7 @@ import torch
 
 from ..errors import KneasError
 from ..evaluation.metrics import psnr2d
-from .anchor import Anchor, label_interior
+from .anchor import Anchor, edge_trust, label_interior
 from .checkpoint import load_latest_checkpoint, save_checkpoint
 from .progress import format_losses, stage_progress
 
@@ -288,30 +288,36 @@ class Trainer:
         self.warm_start_time_s = time.perf_counter() - started
         return self.warm_start_time_s
 
-    def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0) -> None:
+    def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
+                   edge_contrast: float = 0.0) -> None:
         """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
         prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none;
         ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models), only where
-        they are trusted: :func:`~.anchor.label_interior`, away from the volume's edges."""
+        they are trusted: :func:`~.anchor.label_interior`, away from the volume's edges;
+        ``edge_contrast`` > 0 weighs each voxel's value by :func:`~.anchor.edge_trust` (less at
+        its sharp edges)."""
         if weight <= 0:
             self.anchor = None
             return
         points, targets = self._voxel_targets(volume, "prior")
-        mask = None
+        mask = values = None
         if occupancy_weight > 0 and self.model.has_surfaces:
             thresholds = self.model.label_thresholds().detach().cpu().numpy()
             mask = torch.as_tensor(label_interior(np.clip(volume, 0.0, None), thresholds).reshape(-1), device=self.device)
-        self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask)
+        if edge_contrast > 0:
+            values = torch.as_tensor(edge_trust(volume, edge_contrast).reshape(-1), device=self.device)
+        self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask, values)
 
     def anchor_loss(self) -> torch.Tensor:
-        """``weight`` x (the MSE between ``mu`` and the prior volume + ``occupancy_weight`` x the
-        per-material occupancy cross-entropy on its trusted labels, ``CTModel.occupancy_loss``) at
-        ``points_per_step`` voxel centres drawn with the run's loss generator (so a resumed run
-        draws the same ones)."""
+        """``weight`` x (the MSE between ``mu`` and the prior volume, each voxel times its
+        ``value_weights`` where set, + ``occupancy_weight`` x the per-material occupancy
+        cross-entropy on its trusted labels, ``CTModel.occupancy_loss``) at ``points_per_step``
+        voxel centres drawn with the run's loss generator (so a resumed run draws the same ones)."""
         a = self.anchor
         idx = torch.randint(0, len(a.points), (min(a.points_per_step, len(a.points)),), generator=self.generator).to(self.device)
         q = self.model.query(a.points[idx])
-        loss = torch.mean((q["mu"] - a.targets[idx]) ** 2)
+        squared = (q["mu"] - a.targets[idx]) ** 2
+        loss = torch.mean(squared if a.value_weights is None else a.value_weights[idx] * squared)
         if a.label_mask is not None:
             loss = loss + a.occupancy_weight * self.model.occupancy_loss(q["distances"], a.targets[idx], mask=a.label_mask[idx])
         return a.weight * loss
