@@ -109,7 +109,7 @@ class TrainerConfig:
             (``engine.anchor.edge_trust``): a classical volume's error grows with its gradient, so
             its sharp edges are held less and the projections place them; faint edges keep most
             of their weight. 0 = every voxel alike; None = the preset's (0 in every preset: measured
-            in README "Presets", not a gain on every scene).
+            in docs/experiments.md, not a gain on every scene).
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).

@@ -46,7 +46,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # starting at 100, 64 evenly spaced evaluation samples in 256-ray chunks, a
     # 40-epoch model (2000 steps on 50 views). Bounds from the ASD-POCS reconstruction,
     # and a 300-step warm start fitting the model to it (options beside the paper's
-    # procedure; see README "Presets" for what each lever measured on foot:
+    # procedure; see docs/experiments.md for what each lever measured on foot:
     # 22.0 dB with the paper's procedure -> 33.9 dB from FDK, 34.2 from SART, 34.7 from ASD-POCS),
     # and the visual-hull occupancy grid, which puts the 64 samples on the stretch of each ray that
     # can hold material (~0.8 voxel spacing instead of 2-3 voxels): 34.7 -> 38.5 dB on foot;
@@ -55,20 +55,20 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # model's volume (Joseph), 7 s instead of 1 min 21 s on foot. Materials: K = 1..6 (first), the lowest
     # BIC among K whose boundaries are all density valleys (the paper: 1..4 by BIC, which chose
     # K = 3 on abdomen and left bone without a material): abdomen 37.16 -> 39.17 dB, chest
-    # 37.43 -> 37.62, foot 38.79 -> 38.56, jaw 40.66 -> 40.13 (README "Presets"). The voxel-planes
+    # 37.43 -> 37.62, foot 38.79 -> 38.56, jaw 40.66 -> 40.13 (docs/experiments.md). The voxel-planes
     # quadrature (--model.quadrature voxel-planes) stays an option: +0.0-0.2 dB on the built-in scenes,
-    # but twice the samples and -0.25 dB on a head that fills the box (README "Presets").
+    # but twice the samples and -0.25 dB on a head that fills the box (docs/experiments.md).
     # The anchor keeps the ASD-POCS volume's labels too, where they are trusted (>= 2 voxels from
     # any other label; anchor occupancy 0.03): a material whose level sits near a boundary
     # (head-256's ventricles) keeps its label, ventricle Dice 0.00 -> 0.93; 0.01 did not keep it,
-    # 0.1 cost chest's blood (README "Presets"). Then K = 1..8, each mixture the best of 3 k-means
+    # 0.1 cost chest's blood (docs/experiments.md). Then K = 1..8, each mixture the best of 3 k-means
     # starts: one start misjudged K on abdomen and merged kidney with liver (kidney Dice 0 -> 0.89,
     # abdomen 39.28 -> 39.58 dB, foot 38.65 -> 38.87, the other five scenes within 0.01 dB).
     # Now K and the bounds come from the histogram's peaks (--bounds-k-rule peaks: one material per
     # peak, boundaries at its valleys, no mixture, the same at every seed; the mixtures' K moved with
     # the seed and lost abdomen's kidney at seed 1), falling back to the rule above where the histogram
     # has fewer than two peaks (noisy scans): over seeds 0 and 1 the four built-in scenes +0.06 dB on
-    # average, the kidney kept at both, held-out head-256 +1.0 dB, every run faster (README "Presets").
+    # average, the kidney kept at both, held-out head-256 +1.0 dB, every run faster (docs/experiments.md).
     "cpu": {
         "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
