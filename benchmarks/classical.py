@@ -77,9 +77,10 @@ def per_material_chamfer(metrics: dict) -> dict:
 
 
 def main(argv=None) -> int:
+    sys.path.insert(0, str(HERE))
+    from heldout import scene_from_spec
     from kneas_method.classical.options import ALGORITHMS, ReconstructionOptions
     from kneas_method.classical.reconstruct import reconstruct
-    from kneas_method.data.scenes import resolve_scene
     from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
     from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.presets import TABLE
@@ -116,13 +117,7 @@ def main(argv=None) -> int:
     print(header)
     print("-" * len(header))
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
-        if spec.startswith("heldout:"):
-            sys.path.insert(0, str(HERE))
-            from heldout import heldout_scene
-
-            scene = heldout_scene(spec.split(":", 1)[1])
-        else:
-            scene = resolve_scene(spec)
+        scene = scene_from_spec(spec)
         if args.trace and scene.image is None:
             raise SystemExit(f"error: --trace scores each iteration against the ground truth, and scene {spec!r} has none; "
                              "drop --trace for this scene")

@@ -30,11 +30,11 @@ HERE = Path(__file__).resolve().parent
 def main(argv=None) -> int:
     sys.path.insert(0, str(HERE))
     from classical import machine, parse_run
+    from heldout import scene_from_spec
 
     from kneas_method.classical.options import ALGORITHMS, ReconstructionOptions
     from kneas_method.classical.projector import forward
     from kneas_method.classical.reconstruct import reconstruct
-    from kneas_method.data.scenes import resolve_scene
     from kneas_method.evaluation.metrics import psnr3d
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -52,12 +52,7 @@ def main(argv=None) -> int:
     rows = []
     print(f"{'scene':9s} {'run':28s} {'own data':>9s} {'joseph data':>12s} {'cost dB':>8s}")
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
-        if spec.startswith("heldout:"):
-            from heldout import heldout_scene
-
-            scene = heldout_scene(spec.split(":", 1)[1])
-        else:
-            scene = resolve_scene(spec)
+        scene = scene_from_spec(spec)
         if scene.image is None:
             raise SystemExit(f"error: scene {spec!r} has no ground-truth volume; this benchmark needs one")
         exact = np.asarray(scene.image, dtype=np.float32)

@@ -59,6 +59,16 @@ def _texture(shape, seed: int = 0, sigma_voxels: float = 3.0, amplitude: float =
     return 1.0 + amplitude * field / np.abs(field).max()
 
 
+def scene_from_spec(spec: str):
+    """A benchmark's ``--scenes`` entry: ``heldout:NAME`` (:func:`heldout_scene`), else a built-in
+    name or a NAF pickle path (``resolve_scene``)."""
+    if spec.startswith("heldout:"):
+        return heldout_scene(spec.split(":", 1)[1])
+    from kneas_method.data.scenes import resolve_scene
+
+    return resolve_scene(spec)
+
+
 def heldout_scene(name: str):
     """The held-out scene ``name`` (one of :data:`SCENES`), simulated in memory."""
     from kneas_method.data.simulate import SimulationConfig, simulate_from_volume, simulate_phantom
