@@ -33,6 +33,21 @@ def test_write_json_is_strict_and_atomic(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["m.json"]
 
 
+def test_run_files_get_the_permissions_of_a_plain_write(tmp_path):
+    """Atomic writes go through an owner-only temp file; the result must not stay owner-only
+    (metrics and configs hidden from the other users of a shared machine)."""
+    import os
+
+    old = os.umask(0o022)
+    try:
+        path = run_dir.write_json(tmp_path / "metrics.json", {"psnr3d": 1.0})
+        plain = tmp_path / "plain.json"
+        plain.write_text("{}")
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777 == 0o644
+
+
 def test_read_json_errors(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text("{nope")
