@@ -191,6 +191,12 @@ def resolve(config: RunConfig) -> RunConfig:
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}
+    stages = [("--trainer.epochs", trainer.epochs)]
+    if automatic_bounds(config) and run["bounds_volume"] == "prior":
+        stages.append(("--trainer.prior-epochs", trainer.prior_epochs))
+    for flag, epochs in stages:  # refused here, before any scene is loaded or run folder made
+        if not (isinstance(epochs, int) and not isinstance(epochs, bool) and epochs >= 1):
+            raise ConfigError(f"{flag} must be a whole number >= 1, got {epochs!r}")
     if not (isinstance(run["bounds_max_materials"], int) and not isinstance(run["bounds_max_materials"], bool)
             and run["bounds_max_materials"] >= 1):
         raise ConfigError(f"--bounds-max-materials must be a whole number >= 1, got {run['bounds_max_materials']!r}")

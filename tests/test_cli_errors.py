@@ -13,7 +13,10 @@ CASES = [
     ("train", ["k-neas", "--seed", "abc", "--dry-run"], ["--seed", "'abc'"]),
     ("train", ["k-neas", "--scene", "fooot", "--preset", "tiny", "--output-dir", "{tmp}"], ["'fooot'", "did you mean foot"]),
     ("train", ["--resume", "{tmp}/nowhere"], ["no config.json"]),
+    ("train", ["k-neas", "--trainer.epochs", "0", "--dry-run"], ["--trainer.epochs must be a whole number >= 1, got 0"]),
+    ("train", ["k-neas", "--preset", "paper", "--trainer.prior-epochs", "0", "--dry-run"], ["--trainer.prior-epochs", "got 0"]),
     ("eval", ["{tmp}/nowhere"], ["does not exist"]),
+    ("eval", ["{tmp}"], ["has no config.json", "not a kneas run folder"]),
     ("eval", ["--scnee", "foot"], ["unrecognized arguments: --scnee", "did you mean --scene"]),
     ("export", ["mesk", "run"], ["invalid choice: 'mesk'", "did you mean mesh"]),
     ("export", ["mesh", "run", "--resolutoin", "3"], ["--resolutoin", "did you mean --resolution"]),
@@ -37,3 +40,14 @@ def test_mistakes_are_one_line(module, argv, words, tmp_path, capsys):
     assert err.startswith("error:") and len(err.splitlines()) == 1 and "Traceback" not in err, err
     for word in words:
         assert word in err, (word, err)
+
+
+def test_a_wrong_scene_is_refused_before_any_work_or_output(tmp_path, capsys):
+    """The error is the whole answer: no preset notes before it, no run folder made."""
+    cli = importlib.import_module("kneas_method.cli.train")
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["k-neas", "--scene", str(tmp_path / "missing.pickle"), "--output-dir", str(tmp_path / "out")])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 2
+    assert out == "" and err.startswith("error: --scene") and "missing.pickle" in err, (out, err)
+    assert not (tmp_path / "out").exists()

@@ -25,6 +25,7 @@ from .. import presets, registry
 from ..config import to_dict
 from ..engine.loading import read_config_file, read_run_config, resume_config
 from ..engine.pipeline import train
+from ..data.scenes import check_scene_spec
 from ..errors import ConfigError
 from ..methods import TrainConfig
 from .common import run_cli, tyro_cli
@@ -121,6 +122,8 @@ def dry_run(config) -> int:
 def run(config) -> int:
     _, reason = presets.choose(config.preset)
     config = presets.resolve(config)
+    if not config.dry_run:
+        check_scene_spec(config.scene)  # a wrong --scene is the whole answer, before the preset's notes
     print(reason)
     for note in presets.procedure_notes(config):
         print(note)

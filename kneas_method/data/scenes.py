@@ -96,19 +96,32 @@ def resolve_scene(
         The scene; ``scene.source`` says where it came from.
     """
     spec = str(spec)
+    check_scene_spec(spec)
     path = Path(spec).expanduser()
     if path.is_file():
         scene = load_naf(path)
         scene.source = f"file {path}"
         return scene
+    public = Path(data_dir) / f"{spec}_50.pickle"
+    if public.is_file():
+        scene = load_naf(public, name=spec)
+        scene.source = f"public benchmark {public}"
+        return scene
+    return builtin_scene(spec, cache_dir=cache_dir, progress=progress)
+
+
+def check_scene_spec(spec) -> None:
+    """Refuse, without loading anything, a ``--scene`` that :func:`resolve_scene` would refuse:
+    neither an existing file nor a built-in name (so a command can say so before any other work).
+
+    Raises:
+        SceneError: naming the closest built-in scene, or that a directory was given.
+    """
+    spec = str(spec)
+    path = Path(spec).expanduser()
     names = builtin_names()
-    if spec in names:
-        public = Path(data_dir) / f"{spec}_50.pickle"
-        if public.is_file():
-            scene = load_naf(public, name=spec)
-            scene.source = f"public benchmark {public}"
-            return scene
-        return builtin_scene(spec, cache_dir=cache_dir, progress=progress)
+    if path.is_file() or spec in names:
+        return
     if path.is_dir():
         raise SceneError(f"--scene {spec} is a directory; give a NAF .pickle file or a built-in scene ({', '.join(names)})")
     import difflib

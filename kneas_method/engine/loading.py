@@ -107,7 +107,8 @@ def read_run_config(run_dir: Path):
     """The run's config from ``RUN_DIR/config.json`` (KneasError when missing or foreign)."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
-        raise KneasError(f"{run_dir} has no config.json, so it is not a complete kneas run folder; " + RESUME_HINT.format(run=run_dir))
+        raise KneasError(f"{run_dir} has no config.json, so it is not a kneas run folder; give the folder kneas-train "
+                         "wrote (DIR/<scene>/<method>/<timestamp>: it says 'run folder: ...' when it starts)")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
