@@ -62,4 +62,5 @@ def test_eval_user_errors(tmp_path, capsys):
     (tmp_path / "run").mkdir()
     assert _cli([str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
-    assert "config.json" in err and "--resume" in err
+    # without config.json a folder cannot be resumed either (kneas-train --resume needs it): no --resume hint
+    assert "config.json" in err and "not a kneas run folder" in err and "--resume" not in err

@@ -54,7 +54,7 @@ def test_load_run_and_moved_checkpoint(files, tmp_path):
 def test_incomplete_runs_name_what_is_missing(files, tmp_path):
     bare = tmp_path / "bare"
     bare.mkdir()
-    with pytest.raises(KneasError, match=r"no config\.json.*kneas-train --resume"):
+    with pytest.raises(KneasError, match=r"no config\.json, so it is not a kneas run folder"):
         load_run(bare)
     shutil.copy(files["kneas"] / "config.json", bare)
     with pytest.raises(KneasError, match=r"no checkpoint.*kneas-train --resume"):
