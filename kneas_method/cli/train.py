@@ -23,9 +23,9 @@ from typing import Optional, Sequence
 
 from .. import presets, registry
 from ..config import to_dict
+from ..data.scenes import check_scene_spec
 from ..engine.loading import read_config_file, read_run_config, resume_config
 from ..engine.pipeline import train
-from ..data.scenes import check_scene_spec
 from ..errors import ConfigError
 from ..methods import TrainConfig
 from .common import run_cli, tyro_cli
