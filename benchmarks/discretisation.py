@@ -58,14 +58,15 @@ def main(argv=None) -> int:
         exact = np.asarray(scene.image, dtype=np.float32)
         own = np.asarray(scene.train.projections, dtype=np.float32)
         joseph = np.asarray(forward(exact, scene.geometry, scene.train.angles), dtype=np.float32)
+        rms = {"data_rms": float(np.sqrt(np.mean(own.astype(np.float64) ** 2))),
+               "difference_rms": float(np.sqrt(np.mean((own.astype(np.float64) - joseph) ** 2)))}
         consistent = dataclasses.replace(scene, train=dataclasses.replace(scene.train, projections=joseph))
         for name, kwargs in runs:
             options = ReconstructionOptions(**kwargs)
             scores = [psnr3d(np.clip(reconstruct(name, s, options).volume, 0.0, None), exact) for s in (scene, consistent)]
             row = {"scene": spec, "algorithm": name, "settings": kwargs, "psnr3d_own_data": round(scores[0], 4),
                    "psnr3d_joseph_data": round(scores[1], 4), "cost_db": round(scores[1] - scores[0], 4),
-                   "data_rms": float(np.sqrt(np.mean(own.astype(np.float64) ** 2))),
-                   "difference_rms": float(np.sqrt(np.mean((own.astype(np.float64) - joseph) ** 2)))}
+                   **rms}
             rows.append(row)
             label = name + (":" + ",".join(f"{k}={v}" for k, v in kwargs.items()) if kwargs else "")
             print(f"{spec:9s} {label:28s} {scores[0]:9.2f} {scores[1]:12.2f} {scores[1] - scores[0]:8.2f}", flush=True)
