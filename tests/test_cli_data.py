@@ -125,3 +125,8 @@ def test_console_script_is_wired():
 
     eps = {e.name: e.value for e in entry_points(group="console_scripts")}
     assert eps.get("kneas-data") == "kneas_method.cli.data:main"
+
+
+def test_value_ranges_print_without_negative_zero():
+    assert cli._range(np.array([-0.0, 1.2693])) == "[0, 1.269]"
+    assert cli._range(np.array([-0.25, 2.0])) == "[-0.25, 2]"

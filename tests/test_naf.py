@@ -195,6 +195,9 @@ def test_non_dict_and_garbage_files(tmp_path):
         load_naf(tmp_path / "t.pickle")
     with pytest.raises(SceneError, match="no such file"):
         load_naf(tmp_path / "missing.pickle")
+    (tmp_path / "proj.mha").write_text("ObjectType = Image\nNDims = 3\n")  # projections given as --scene
+    with pytest.raises(SceneError, match=r"proj.mha is not a scene pickle but an image or geometry file; .*kneas-data import"):
+        load_naf(tmp_path / "proj.mha")
     with pytest.raises(SceneError, match="is a directory"):
         load_naf(tmp_path)
 

@@ -17,8 +17,10 @@ def test_run_dir_layout_and_unique(tmp_path):
 def test_unwritable_output_reported_before_training(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    with pytest.raises(KneasError, match="not writable.*--output-dir"):
+    with pytest.raises(KneasError, match=r"/file is a file, not a folder; choose another with --output-dir"):
         run_dir.create_run_dir(blocker / "out", "foot", "k-neas")
+    with pytest.raises(KneasError, match=r"/file is a file, not a folder; choose another with -o"):
+        run_dir.check_writable(blocker, flag="-o")
 
 
 def test_full_disk_reported(tmp_path):

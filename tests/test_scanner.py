@@ -559,6 +559,37 @@ def test_refused_geometries_are_one_line_errors(scan, tmp_path, capsys, case, bo
     assert not (tmp_path / "s.pickle").exists()
 
 
+def test_pixel_spacing_in_metres_is_refused_with_the_fix(scan, tmp_path, capsys):
+    """Pixel sizes written in metres make a detector a thousand times too small: refused, naming --pixel-mm."""
+    stack = itk.image_from_array(np.ascontiguousarray(scan.p.astype(np.float32)))
+    itk.imwrite(stack, str(tmp_path / "stack.tif"))
+    argv = ["import", str(tmp_path / "stack.tif"), "--geometry", str(scan.xml), "--centre-detector", "--volume-size", "16",
+            "-o", str(tmp_path / "s.pickle")]
+    code, _, err = run_cli([*argv, "--pixel-mm", str(DU / 1000), str(DV / 1000)], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "probably in metres" in err and f"--pixel-mm {DU:.4g} {DV:.4g}" in err and not (tmp_path / "s.pickle").exists()
+    code, _, err = run_cli([*argv, "--pixel-mm", str(DU), str(DV)], capsys)  # in mm it imports
+    assert code == 0, err
+
+
+def test_stack_with_the_projection_axis_elsewhere_says_so(scan, tmp_path, capsys):
+    """A stack written with the projection index on an image axis: the count error says which axis to move."""
+    moved = itk.image_from_array(np.ascontiguousarray(np.transpose(scan.p, (2, 1, 0)).astype(np.float32)))
+    itk.imwrite(moved, str(tmp_path / "moved.mha"))
+    code, _, err = run_cli(["import", str(tmp_path / "moved.mha"), "--geometry", str(scan.xml), "-o", str(tmp_path / "s.pickle")], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    msg = " ".join(err.split())
+    assert f"{NU} projection images but geometry.xml describes 72 projections" in msg
+    assert "one of the image axes has 72 entries" in msg and "[projection, v, u]" in msg
+
+
+def test_output_under_a_file_is_refused_before_reading(scan, tmp_path, capsys):
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    code, _, err = run_cli(["import", str(scan.proj), "--geometry", str(scan.xml), "-o", str(blocker / "s.pickle")], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"{blocker} is a file, not a folder" in " ".join(err.split()), err
+
+
 def test_counts_without_air_or_flat_ask_for_flat_or_i0(scan, tmp_path, capsys):
     """Raw counts whose border is not air: kneas cannot find I0 and says how to give it."""
     ramp = np.linspace(0.5, 8.0, NU)[None, None, :]  # an object over the whole detector

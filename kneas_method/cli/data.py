@@ -110,9 +110,7 @@ def _simulate(args) -> int:
 
     cfg = _config(args)
     cfg.validate()
-    out = Path(args.output)
-    if out.is_dir():
-        raise ConfigError(f"-o {out} is a directory; give a file name such as {out / 'scene_50.pickle'}")
+    out = _output_file(args.output, "scene_50.pickle")
     t0 = time.perf_counter()
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console, transient=True) as bar:
         task = bar.add_task("starting", total=None)
@@ -153,13 +151,22 @@ def _simulate(args) -> int:
     return 0
 
 
+def _output_file(output: str, example: str) -> Path:
+    """``-o`` as a path, refused before any work when it is a folder or its folder cannot be written."""
+    from ..engine.run_dir import check_writable
+
+    out = Path(output)
+    if out.is_dir():
+        raise ConfigError(f"-o {out} is a directory; give a file name such as {out / example}")
+    check_writable(out.parent, needed_bytes=0, flag="-o")
+    return out
+
+
 def _import(args) -> int:
     from ..data.naf import save_naf
     from ..data.scanner_import import import_scan
 
-    out = Path(args.output)
-    if out.is_dir():
-        raise ConfigError(f"-o {out} is a directory; give a file name such as {out / 'scan.pickle'}")
+    out = _output_file(args.output, "scan.pickle")
     t0 = time.perf_counter()
     with console.status("reading projections and geometry"):
         scene = import_scan(
@@ -185,7 +192,8 @@ def _import(args) -> int:
     say(f"  grid {tuple(scene.geometry.n_voxel)} x {_fmt(g['dVoxel'])} mm, offset {_fmt(g['offOrigin'])} mm "
         f"({imp['grid']['chosen']}: radius {imp['grid']['fov_radius_mm']:.4g} mm, height {imp['grid']['fov_height_mm']:.4g} mm)")
     say(f"  frame: {imp['frame']}")
-    say("  no ground truth and no held-out views: all projections are for training")
+    say("  no ground truth and no held-out views: kneas-train holds every 10th projection (at most 10) out of training "
+        "for the 2D metrics and trains on the rest")
     for note in imp["notes"]:
         say(f"note: {note}")
     return 0
@@ -212,7 +220,7 @@ def _fmt(values) -> str:
 
 
 def _range(arr) -> str:
-    return f"[{float(np.min(arr)):.4g}, {float(np.max(arr)):.4g}]"
+    return f"[{float(np.min(arr)) + 0.0:.4g}, {float(np.max(arr)) + 0.0:.4g}]"  # + 0.0: no "-0"
 
 
 def _inspect(args) -> int:

@@ -130,6 +130,11 @@ def safe_load_pickle(path) -> Any:
         raise
     except Exception as exc:  # UnpicklingError, EOFError, ValueError, ...
         msg = " ".join(str(exc).split()) or type(exc).__name__
+        from .scanner_import import IMAGE_SUFFIXES
+
+        if path.name.lower().endswith(IMAGE_SUFFIXES + (".xml", ".raw")):
+            raise SceneError(f"{label} is not a scene pickle but an image or geometry file; make a scene from a scan first: "
+                             f"kneas-data import PROJECTIONS --geometry geometry.xml -o scan.pickle") from None
         raise SceneError(f"{label} is not a readable scene pickle ({msg}); re-create it or re-download it") from None
 
 

@@ -355,6 +355,30 @@ def to_line_integrals(data: np.ndarray, kind: str = "auto", *, flat: Optional[np
 
 
 # --------------------------------------------------------------------------- grid
+# the detector's width at the isocentre must be at least this fraction of the source's distance
+# to it: a CT field of view is about a quarter of it, a micro- or nano-CT's a few percent; pixel
+# spacings written in metres instead of mm (the usual mistake) give about 1e-4
+MIN_FOV_FRACTION = 1e-3
+
+
+def check_detector_scale(geo: ImportedGeometry) -> None:
+    """Refuse a detector that is too small for its geometry to be real (spacing in metres, not mm).
+
+    Raises:
+        SceneError: naming the detector's width, the field of view it gives and ``--pixel-mm``.
+    """
+    if geo.mode != "cone":
+        return
+    width = float(geo.n_detector[0] * geo.d_detector[0])
+    fov = width * geo.dso / geo.dsd
+    if fov < MIN_FOV_FRACTION * geo.dso:
+        scaled = " ".join(f"{1000 * d:.4g}" for d in dict.fromkeys(geo.d_detector))
+        raise SceneError(
+            f"the detector is {width:.4g} mm wide ({geo.d_detector[0]:.4g} mm pixels), a {fov:.4g} mm field of view with the source "
+            f"{geo.dso:.6g} mm from the isocentre; the projections' pixel spacing is probably in metres, not mm: "
+            f"give --pixel-mm {scaled} (or write the images with their spacing in mm)")
+
+
 def default_grid(geo: ImportedGeometry, *, volume_size: Optional[int] = None, voxel_mm: Optional[float] = None) -> dict:
     """A reconstruction grid (NAF keys, mm) covering the field of view.
 
@@ -449,9 +473,14 @@ def import_scan(
     stack = read_projections(projections, pixel_mm=pixel_mm, centre=centre_detector)
     n_img = stack.data.shape[0]
     if n_img != len(rtk_geom):
-        raise SceneError(f"{n_img} projection images but {geometry_xml.name} describes {len(rtk_geom)} projections; "
-                         "give exactly the projections the geometry was made for, in its order")
+        hint = "give exactly the projections the geometry was made for, in its order"
+        if len(rtk_geom) in stack.data.shape[1:]:
+            n_v, n_u = stack.data.shape[1:]
+            hint = (f"the stack reads as {n_img} images of {n_u}x{n_v} pixels, and one of the image axes has {len(rtk_geom)} entries: "
+                    "write the stack with the projection index as its last ITK axis (numpy order [projection, v, u])")
+        raise SceneError(f"{n_img} projection images but {geometry_xml.name} describes {len(rtk_geom)} projections; {hint}")
     imported = rtk_to_kneas(rtk_geom, stack.grid, label=geometry_xml.name)
+    check_detector_scale(imported)
     flat_arr = read_field(flat, stack.grid, "flat") if flat is not None else None
     dark_arr = read_field(dark, stack.grid, "dark") if dark is not None else None
     p_rtk, conversion = to_line_integrals(stack.data, kind, flat=flat_arr, dark=dark_arr, i0=i0)

@@ -39,6 +39,9 @@ def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES, flag:
         (``flag``: the option that chooses another folder).
     """
     folder = Path(folder)
+    blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise KneasError(f"output folder {folder} cannot be made: {blocker} is a file, not a folder; choose another with {flag}")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(prefix=".kneas-write-test-", dir=folder)
