@@ -192,8 +192,10 @@ def _import(args) -> int:
     say(f"  grid {tuple(scene.geometry.n_voxel)} x {_fmt(g['dVoxel'])} mm, offset {_fmt(g['offOrigin'])} mm "
         f"({imp['grid']['chosen']}: radius {imp['grid']['fov_radius_mm']:.4g} mm, height {imp['grid']['fov_height_mm']:.4g} mm)")
     say(f"  frame: {imp['frame']}")
-    say("  no ground truth and no held-out views: kneas-train holds every 10th projection (at most 10) out of training "
-        "for the 2D metrics and trains on the rest")
+    from ..engine.loading import HOLDOUT_AT_MOST, HOLDOUT_FRACTION
+
+    say(f"  no ground truth and no held-out views: kneas-train holds every {round(1 / HOLDOUT_FRACTION)}th projection "
+        f"(at most {HOLDOUT_AT_MOST}) out of training for the 2D metrics and trains on the rest")
     for note in imp["notes"]:
         say(f"note: {note}")
     return 0

@@ -161,7 +161,10 @@ def _flat_diff(a: dict, b: dict, prefix: str = "") -> dict[str, tuple]:
     return out
 
 
-def holdout_views(scene, fraction: float = 0.1, at_most: int = 10):
+HOLDOUT_FRACTION, HOLDOUT_AT_MOST = 0.1, 10  # training views held out of a scene that has none
+
+
+def holdout_views(scene, fraction: float = HOLDOUT_FRACTION, at_most: int = HOLDOUT_AT_MOST):
     """A scene with no held-out views (real scans): every k-th training view is held out
     for the 2D metrics (``fraction`` of them, at least 1, at most ``at_most``) and the
     rest kept for training. Deterministic; recorded in ``scene.meta["holdout"]``."""
