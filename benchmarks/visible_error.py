@@ -148,9 +148,10 @@ def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
            "band_error_share": round(float((e * e)[band].sum() / (e * e).sum()), 4)}
     if phantom is not None:
         gt_fine = torch.as_tensor(phantom.volume(fine_geometry(geometry, fine), supersample=2))
-        d_exact = A_fine.forward(gt_fine) - A.forward(box(gt_fine, fine))
+        A_fine_gt = A_fine.forward(gt_fine)
+        d_exact = A_fine_gt - A.forward(box(gt_fine, fine))
         residuals["data_exact_discretisation"] = b - d_exact - A_v
-        row["fine_floor"] = float(((A_fine.forward(gt_fine) - b) ** 2).mean())
+        row["fine_floor"] = float(((A_fine_gt - b) ** 2).mean())
         row["discretisation_estimate_error"]["exact"] = float(((d_true - d_exact) ** 2).mean())
     row["corrections"] = {name: summary(band_cgls(A, v, gt, band, r, iterations)) for name, r in residuals.items()}
     return row
@@ -158,7 +159,7 @@ def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("runs", nargs="+", type=Path, help="run folders of a surface method on built-in scenes")
+    p.add_argument("runs", nargs="+", type=Path, help="run folders of a surface method on scenes with a ground-truth volume")
     p.add_argument("--fine", type=int, default=4, help="the finer grid's factor for the discretisation terms (default 4)")
     p.add_argument("--iterations", type=int, default=12, help="CGLS iterations per correction (default 12)")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
