@@ -11,8 +11,10 @@ training projections ``b`` with this project's Joseph projector ``A`` (``kneas_m
   ``mean((b - A gt)^2)``: the projector's own discretisation error on the exact volume, and
   ``fine_floor``: the same on a grid ``--fine`` times finer (the phantom's voxel means there,
   projected at that resolution);
-- ``band``: the voxels within one voxel of a place where ``v``'s gradient exceeds 0.02 per voxel (from
-  the run's own volume, no ground truth), and the share of the squared error inside it;
+- ``band``: the voxels within one voxel of a place where ``v``'s gradient exceeds 2 % of its 99.5th
+  percentile per voxel (``kneas_method.correction.edge_band``, the run's own volume, no ground truth;
+  the figures of the 40th stop in docs/experiments.md used 0.02 data units per voxel), and the share
+  of the squared error inside it;
 - ``corrections``: ``v + M x`` with ``M`` the band and ``x`` from CGLS on ``(A M) x = r`` started at
   0, psnr3d per iteration (best and where), for four residuals ``r``:
   ``oracle`` ``A gt - A v`` (a projector without discretisation error: what the views determine
@@ -20,7 +22,8 @@ training projections ``b`` with this project's Joseph projector ``A`` (``kneas_m
   ``b - d - A v`` with ``d = A_f g_f - A box(g_f)`` from the phantom on the fine grid (the best a
   discretisation estimate can do at that resolution); ``data_field_discretisation`` the same ``d``
   computed from the run's own field (queried on the fine grid inside the band, 2x sharper, the
-  trilinear upsampling of ``v`` elsewhere) - what a method could do without the ground truth.
+  trilinear upsampling of ``v`` elsewhere; ``kneas_method.correction.discretisation_error``) - what
+  the cpu preset's band correction does after training, here without its noise stop.
   ``fine_floor`` and the exact row need an analytic phantom: built-in scenes only.
 
 Minutes per run, no training. Not part of the test suite.
@@ -29,80 +32,22 @@ Minutes per run, no training. Not part of the test suite.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from run_rows import run_rows
 
-BAND_GRADIENT = 0.02  # per voxel, data units
-QUERY_CHUNK = 262144
 
-
-def edge_band(volume: torch.Tensor, dilate: int) -> torch.Tensor:
-    """[nx, ny, nz] -> bool: within ``dilate`` voxels of a central-difference gradient above BAND_GRADIENT."""
-    gx, gy, gz = torch.gradient(volume)
-    hot = ((gx * gx + gy * gy + gz * gz).sqrt() > BAND_GRADIENT).float()[None, None]
-    return F.max_pool3d(hot, 2 * dilate + 1, 1, dilate)[0, 0] > 0
-
-
-def fine_geometry(geometry, f: int):
-    return dataclasses.replace(geometry, n_voxel=tuple(n * f for n in geometry.n_voxel),
-                               d_voxel=tuple(d / f for d in geometry.d_voxel))
-
-
-def box(volume: torch.Tensor, f: int) -> torch.Tensor:
-    """Mean over f^3 blocks: [f nx, f ny, f nz] -> [nx, ny, nz]."""
-    nx, ny, nz = (n // f for n in volume.shape)
-    return volume.reshape(nx, f, ny, f, nz, f).mean((1, 3, 5))
-
-
-def band_cgls(A, v: torch.Tensor, gt: np.ndarray, band: torch.Tensor, r: torch.Tensor, iterations: int) -> list[float]:
-    """psnr3d of ``v + M x_i`` for the CGLS iterates x_i of ``(A M) x = r`` from 0."""
+def band_curve(A, v: torch.Tensor, gt: np.ndarray, band: torch.Tensor, r: torch.Tensor, iterations: int) -> list[float]:
+    """psnr3d of ``v + x_i`` for the CGLS iterates x_i of ``(A M) x = r`` from 0 (``correction.band_cgls``)."""
+    from kneas_method.correction import band_cgls
     from kneas_method.evaluation.metrics import psnr3d
 
-    m = band.to(v.dtype)
-    r = r.clone()
-    x = torch.zeros_like(v)
-    s = A.back(r) * m
-    p, g = s.clone(), (s * s).sum()
-    out = []
-    for _ in range(iterations):
-        q = A.forward(p * m)
-        a = g / (q * q).sum()
-        x += a * p
-        r -= a * q
-        s = A.back(r) * m
-        gn = (s * s).sum()
-        p, g = s + gn / g * p, gn
-        out.append(round(float(psnr3d((v + m * x).clamp_min(0).numpy(), gt)), 3))
+    out: list[float] = []
+    band_cgls(A, r, band, iterations, iterates=lambda i, x: out.append(round(float(psnr3d((v + x).clamp_min(0).numpy(), gt)), 3)))
     return out
-
-
-def field_discretisation(model, geometry, v: torch.Tensor, band: torch.Tensor, f: int, A, A_fine) -> torch.Tensor:
-    """``A_f w - A box(w)`` for ``w`` the model's field on the fine grid inside the band (sharpness x2)
-    and the trilinear upsampling of ``v`` elsewhere."""
-    w = F.interpolate(v[None, None], scale_factor=f, mode="trilinear", align_corners=False)[0, 0]
-    fine_band = band.repeat_interleave(f, 0).repeat_interleave(f, 1).repeat_interleave(f, 2)
-    idx = fine_band.nonzero()
-    axes = fine_geometry(geometry, f).voxel_axes()
-    boundary = model.boundary
-    saved = boundary.log_s.data.clone()
-    boundary.log_s.data += math.log(2.0) / boundary.LOG_SCALE
-    try:
-        vals = []
-        for i in range(0, len(idx), QUERY_CHUNK):
-            j = idx[i:i + QUERY_CHUNK]
-            pts = torch.stack([axes[0][j[:, 0]], axes[1][j[:, 1]], axes[2][j[:, 2]]], -1)
-            vals.append(model.query(pts)["mu"])
-    finally:
-        boundary.log_s.data = saved
-    w[fine_band] = torch.cat(vals)
-    return A_fine.forward(w) - A.forward(box(w, f))
 
 
 def summary(curve: list[float]) -> dict:
@@ -112,6 +57,7 @@ def summary(curve: list[float]) -> dict:
 
 def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
     from kneas_method.classical.projector import Projector
+    from kneas_method.correction import box_mean, discretisation_error, edge_band, fine_geometry
     from kneas_method.data.phantoms import PHANTOM_NAMES, get_phantom
     from kneas_method.engine.evaluate import sample_volume
     from kneas_method.engine.loading import load_run
@@ -133,9 +79,9 @@ def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
     A = Projector(geometry, scene.train.angles)
     A_fine = Projector(fine_geometry(geometry, fine), scene.train.angles)
     e = v - gt_t
-    band = edge_band(v, 1)
+    band = edge_band(v)
     A_gt = A.forward(gt_t)
-    d_field = field_discretisation(loaded.model, geometry, v, band, fine, A, A_fine)
+    d_field = discretisation_error(loaded.model, geometry, v, band, A, A_fine, fine=fine, sharpen=2.0)
     d_true = b - A_gt
     A_v = A.forward(v)
     residuals = {"oracle": A_gt - A_v, "data": b - A_v, "data_field_discretisation": b - d_field - A_v}
@@ -149,11 +95,11 @@ def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
     if phantom is not None:
         gt_fine = torch.as_tensor(phantom.volume(fine_geometry(geometry, fine), supersample=2))
         A_fine_gt = A_fine.forward(gt_fine)
-        d_exact = A_fine_gt - A.forward(box(gt_fine, fine))
+        d_exact = A_fine_gt - A.forward(box_mean(gt_fine, fine))
         residuals["data_exact_discretisation"] = b - d_exact - A_v
         row["fine_floor"] = float(((A_fine_gt - b) ** 2).mean())
         row["discretisation_estimate_error"]["exact"] = float(((d_true - d_exact) ** 2).mean())
-    row["corrections"] = {name: summary(band_cgls(A, v, gt, band, r, iterations)) for name, r in residuals.items()}
+    row["corrections"] = {name: summary(band_curve(A, v, gt, band, r, iterations)) for name, r in residuals.items()}
     return row
 
 

@@ -110,6 +110,21 @@ class TrainerConfig:
             its sharp edges are held less and the projections place them; faint edges keep most
             of their weight. 0 = every voxel alike; None = the preset's (0 in every preset: measured
             in docs/experiments.md, not a gain on every scene).
+        correction_passes: after training, this many passes of the band correction
+            (``kneas_method.correction``, ``engine.correction_stage``): each solves for what the
+            training views still say about the model's volume, in a band around its edges, against
+            the scene grid's projector with that grid's discretisation error taken out (estimated
+            from the model's own sharper field on a finer grid), then fits the model to the
+            corrected volume in that band (``correction_steps`` Adam steps at ``correction_lr``),
+            so the field, its surfaces included, carries the correction. Surface models only; a pass
+            that finds nothing above the noise ends them. 0 = off; None = the preset's (paper and
+            tiny 0; cpu 3).
+        correction_iterations: CGLS iterations per pass at most (cpu 3).
+        correction_noise_factor: a pass's iterations stop once the residual's mean square is within
+            this factor of the data's noise variance (estimated from the residual; the discrepancy
+            principle), so a noisy scan is not fitted to its noise.
+        correction_steps / correction_lr / correction_points: the fit of each pass: Adam steps,
+            learning rate and band voxel centres per step (and a quarter as many anywhere).
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -133,6 +148,12 @@ class TrainerConfig:
     anchor_points: int = 4096
     anchor_occupancy: Optional[float] = None
     anchor_edge_contrast: Optional[float] = None
+    correction_passes: Optional[int] = None
+    correction_iterations: int = 3
+    correction_noise_factor: float = 2.0
+    correction_steps: int = 300
+    correction_lr: float = 1e-4
+    correction_points: int = 8192
     log_every: int = 50
     max_bad_steps: int = 5
 

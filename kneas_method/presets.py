@@ -36,7 +36,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0},
+                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
@@ -75,7 +75,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": True, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
         "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
-                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0},
+                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 3},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "peaks", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },
     "tiny": {
@@ -84,7 +84,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0},
+                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
 }
@@ -188,6 +188,19 @@ def resolve(config: RunConfig) -> RunConfig:
     elif trainer.anchor_edge_contrast and not trainer.warm_start_anchor:
         raise ConfigError("trainer.anchor_edge_contrast weighs the warm-start volume's voxels inside the anchor, but there is no anchor "
                           "(warm_start_anchor 0); give --trainer.warm-start-anchor 0.01 or leave --trainer.anchor-edge-contrast out")
+    for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points"):
+        value = getattr(trainer, setting)
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+            raise ConfigError(f"trainer.{setting} must be a whole number >= 0, got {value!r}")
+    for setting in ("correction_noise_factor", "correction_lr"):
+        value = getattr(trainer, setting)
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
+            raise ConfigError(f"trainer.{setting} must be a number >= 0, got {value!r}")
+    if trainer.correction_passes and not surfaces:
+        if config.trainer.correction_passes is not None:
+            raise ConfigError(f"method {config.method!r} has no surfaces, and the band correction sharpens them to model the "
+                              "grid's discretisation; drop --trainer.correction-passes or use a surface method such as k-neas")
+        trainer = dataclasses.replace(trainer, correction_passes=0)  # the preset's, where it cannot apply
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}

@@ -9,8 +9,11 @@ Stages (each returns a typed result):
    ``classical_volume`` reconstructs the training views once, cached in the run folder.
 3. **training**: ``train_stage`` (resume from the newest checkpoint, or warm start, then
    ``Trainer.train``).
-4. **evaluation**: ``evaluate_model_stage`` on all held-out views and the voxel centres.
-5. **report**: figures, ``metrics.json`` and the summary block (``report``).
+4. **correction** (surface models, ``trainer.correction_passes`` > 0): ``correct_stage``, passes of
+   the band correction of the trained model against the training views (``kneas_method.correction``),
+   each written into the model; the checkpoint is rewritten with them.
+5. **evaluation**: ``evaluate_model_stage`` on all held-out views and the voxel centres.
+6. **report**: figures, ``metrics.json`` and the summary block (``report``).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from ..model import field_has_surfaces
 from . import report
 from .bounds_stage import BoundsResult, estimate_bounds
 from .classical_volume import classical_volume
+from .correction_stage import correct_stage
 from .evaluate import evaluate_model_stage
 from .figures import run_figures
 from .run_dir import read_json, save_run_config, write_json
@@ -120,6 +124,10 @@ class NeuralPipeline:
             if tb is not None:
                 tb.flush()
         try:
+            correction = correct_stage(trainer, scene, config, device)
+        except KeyboardInterrupt:
+            return _interrupted(run_dir, f"[yellow]interrupted during the correction[/]; training is complete (checkpoint {trainer.last_checkpoint})")
+        try:
             evaluation = evaluate_model_stage(trainer.model, scene, config, device, console)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted during the evaluation[/]; training is complete (checkpoint {trainer.last_checkpoint})")
@@ -132,5 +140,5 @@ class NeuralPipeline:
         used = [k for k in self._classical]
         metrics = report.neural_metrics(config, scene, trainer, bounds, evaluation, device, classical_time_s=self.classical_seconds,
                                         classical_volume=used[0] if len(used) == 1 else (used or None),
-                                        session_wall_time_s=time.perf_counter() - self.started)
+                                        session_wall_time_s=time.perf_counter() - self.started, correction=correction)
         return report.finish(run_dir, metrics)

@@ -18,7 +18,8 @@ from .run_dir import write_json
 # (metrics key, label) of the stages, in the order they run
 STAGES = (("prior_time_s", "prior"), ("classical_time_s", "classical volume"), ("bounds_time_s", "bounds"),
           ("reconstruct_time_s", "reconstruction"),
-          ("warm_start_time_s", "warm start"), ("train_time_s", "training"), ("eval_time_s", "evaluation"))
+          ("warm_start_time_s", "warm start"), ("train_time_s", "training"), ("correction_time_s", "correction"),
+          ("eval_time_s", "evaluation"))
 
 
 def split_per_view(metrics: dict) -> tuple[dict, dict]:
@@ -61,17 +62,20 @@ def classical_metrics(config, scene, reconstruction, evaluation, device) -> dict
 
 
 def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classical_time_s: float,
-                   classical_volume: Optional[str], session_wall_time_s: float) -> dict:
-    """``metrics.json`` of a neural run (``bounds``: a BoundsResult, or None without surfaces)."""
+                   classical_volume: Optional[str], session_wall_time_s: float, correction: Optional[dict] = None) -> dict:
+    """``metrics.json`` of a neural run (``bounds``: a BoundsResult, or None without surfaces;
+    ``correction``: the band-correction passes, or None where there were none)."""
     out, facts = _common(config, scene, evaluation, device)
     per_view = facts.pop("_per_view")
     prior_time = bounds.prior_wall_time_s if bounds is not None else 0.0
     bounds_time = float(bounds.details.get("fit_time_s", 0.0)) if bounds is not None else 0.0  # the GMM fit
+    correction_time = float(trainer.correction_time_s) if correction is not None else 0.0
     out.update(parameters=trainer.model.num_parameters(), steps=trainer.step, epochs=trainer.epochs,
                wall_time_s=trainer.wall_time_s + trainer.warm_start_time_s + prior_time + classical_time_s + bounds_time
-               + evaluation.seconds,
+               + correction_time + evaluation.seconds,
                train_time_s=trainer.wall_time_s, warm_start_time_s=trainer.warm_start_time_s, warm_start=config.trainer.warm_start,
                prior_time_s=prior_time, classical_time_s=classical_time_s, bounds_time_s=bounds_time, classical_volume=classical_volume,
+               correction_time_s=correction_time, correction=correction,
                eval_time_s=evaluation.seconds, **facts, bad_steps=len(trainer.bad_steps))
     if trainer.model.has_surfaces:
         out["num_materials"] = int(trainer.model.num_materials)

@@ -140,6 +140,8 @@ class Trainer:
         self.last_checkpoint: Optional[Path] = None
         self.complete = False
         self.anchor: Optional[Anchor] = None
+        self.correction: Optional[list] = None  # the band-correction passes after training (correction_stage)
+        self.correction_time_s = 0.0
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -161,6 +163,8 @@ class Trainer:
                 "wall_time_s": float(self.wall_time_s),
                 "warm_start_time_s": float(self.warm_start_time_s),
                 "num_materials": int(self.model.num_materials),
+                "correction": self.correction,
+                "correction_time_s": float(self.correction_time_s),
             },
         }
 
@@ -181,6 +185,8 @@ class Trainer:
         self.wall_time_s = float(extra.get("wall_time_s", 0.0))
         self.warm_start_time_s = float(extra.get("warm_start_time_s", 0.0))
         self.complete = bool(extra.get("complete", False))
+        self.correction = extra.get("correction")
+        self.correction_time_s = float(extra.get("correction_time_s", 0.0))
 
     def resume(self) -> Optional[Path]:
         """Load the newest checkpoint of this stage, if any; returns its path."""
@@ -287,6 +293,33 @@ class Trainer:
             self._record(f"warm_start_{k}", v)
         self.warm_start_time_s = time.perf_counter() - started
         return self.warm_start_time_s
+
+    def fit_to_volume(self, volume: np.ndarray, mask: np.ndarray, steps: int, points_per_step: int, lr: float) -> None:
+        """Fit the trained model to ``volume`` (data units, the scene's grid) for ``steps`` Adam steps
+        at ``lr``: each on ``points_per_step`` voxel centres inside ``mask`` [nx, ny, nz] (bool) and a
+        quarter as many anywhere, loss = MSE of ``mu`` + the eikonal term (``CTModel.volume_loss_dict``).
+        Seeded from the run's seed and the step; the training optimiser and RNG are untouched."""
+        points, targets = self._voxel_targets(volume, "correction")
+        inside = torch.as_tensor(np.asarray(mask).reshape(-1), device=self.device).nonzero()[:, 0]
+        if len(inside) == 0:
+            return
+        optimizer = torch.optim.Adam(self.model.parameters(), lr=float(lr))
+        gen = torch.Generator(device="cpu")
+        gen.manual_seed(int(self.config.seed) + 7919 + self.step)
+        n = int(points_per_step)
+        self.model.train()
+        for _ in range(int(steps)):
+            idx = torch.cat([inside[torch.randint(0, len(inside), (n,), generator=gen).to(self.device)],
+                             torch.randint(0, len(points), (n // 4,), generator=gen).to(self.device)])
+            losses = self.model.volume_loss_dict(points[idx], targets[idx])
+            optimizer.zero_grad(set_to_none=True)
+            if not torch.isfinite(losses["total"]):
+                raise KneasError("non-finite loss while writing the band correction into the model; "
+                                 "use --trainer.correction-passes 0")
+            losses["total"].backward()
+            optimizer.step()
+        self.model.zero_grad(set_to_none=True)
+        self.model.eval()
 
     def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
                    edge_contrast: float = 0.0) -> None:

@@ -1,0 +1,201 @@
+"""Band correction: what the training views still say about a trained surface model's volume.
+
+After training, the model's volume ``v`` (its attenuation at the voxel centres) still leaves a
+residual on the training projections ``b``. Almost all of ``v``'s error lies in a thin band
+around its edges (``docs/experiments.md``, "What the 50 views see of the error"), and confined
+to that band the views determine much of it. The correction is ``x``, from CGLS on
+``(A M) x = r`` started at 0, with:
+
+- ``A`` the Joseph projector of the scene grid (``classical.projector.Projector``);
+- ``M`` the band: voxels within ``dilate`` voxels of a place where ``v``'s central-difference
+  gradient exceeds ``gradient`` times ``v``'s 99.5th percentile per voxel, from ``v`` alone
+  (:func:`edge_band`; relative, so the band is the same whatever the data's units);
+- ``r = b - d - A v``, where ``d`` is the scene grid's **discretisation error**, the part of ``b``
+  that no voxel volume on this grid reproduces: ``d = A_f w - A box(w)``, ``w`` the model's
+  field on a grid ``fine`` times finer (queried with the edges ``sharpen`` times sharper, in the
+  band only; the trilinear upsampling of ``v`` elsewhere), ``A_f`` the projector there and
+  ``box`` the mean over each voxel's ``fine^3`` sub-voxels (:func:`discretisation_error`).
+
+The iterations stop at ``iterations`` or earlier, by the **discrepancy principle**, once the
+residual's mean square is within ``noise_factor`` times the data's noise variance, estimated from
+the residual itself (:func:`noise_variance`): on a noisy scan the residual is mostly noise and
+the correction stops before fitting it (at 0 iterations when it starts there; when ``b - A v`` is
+already at the noise level, the discretisation error is not even computed).
+
+The result is a voxel grid (data units, 0 outside the band); the run's correction stage
+(:mod:`kneas_method.engine.correction_stage`) fits the model to ``v + x`` and repeats.
+
+The pure functions take and return tensors; :func:`band_correction` ties them together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "discretisation_error",
+           "band_correction", "Correction"]
+
+MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal noise
+QUERY_CHUNK = 262144
+
+
+def edge_band(volume: torch.Tensor, gradient: float = 0.02, dilate: int = 1) -> torch.Tensor:
+    """[nx, ny, nz] -> bool [nx, ny, nz]: within ``dilate`` voxels of a central-difference
+    gradient magnitude above ``gradient`` times the volume's 99.5th percentile, per voxel."""
+    level = float(torch.quantile(volume.flatten()[::max(1, volume.numel() // 1_000_000)].float(), 0.995))
+    gx, gy, gz = torch.gradient(volume)
+    hot = ((gx * gx + gy * gy + gz * gz).sqrt() > gradient * level).float()[None, None]
+    if dilate > 0:
+        hot = F.max_pool3d(hot, 2 * dilate + 1, 1, dilate)
+    return hot[0, 0] > 0
+
+
+def box_mean(volume: torch.Tensor, f: int) -> torch.Tensor:
+    """Mean over ``f^3`` blocks: [f nx, f ny, f nz] -> [nx, ny, nz]."""
+    nx, ny, nz = (n // f for n in volume.shape)
+    return volume.reshape(nx, f, ny, f, nz, f).mean((1, 3, 5))
+
+
+def fine_geometry(geometry, f: int):
+    """The same volume box with ``f`` times more voxels per axis."""
+    return dataclasses.replace(geometry, n_voxel=tuple(n * f for n in geometry.n_voxel),
+                               d_voxel=tuple(d / f for d in geometry.d_voxel))
+
+
+def noise_variance(residual: torch.Tensor) -> float:
+    """The per-pixel white-noise variance of projections ``residual [N, nV, nU]``.
+
+    The residual is high-passed by the 5-point Laplacian scaled to unit gain on white noise
+    (``(4 p - p_up - p_down - p_left - p_right) / sqrt(20)``) and its spread taken from the
+    median absolute value over the pixels where the residual is not exactly 0 (rays that cross
+    the object): robust to the few pixels where edges leave a structured residual.
+    """
+    r = residual
+    h = (4 * r[:, 1:-1, 1:-1] - r[:, :-2, 1:-1] - r[:, 2:, 1:-1] - r[:, 1:-1, :-2] - r[:, 1:-1, 2:]) / math.sqrt(20)
+    h = h[h != 0]
+    if h.numel() == 0:
+        return 0.0
+    return float((MAD_TO_STD * h.abs().median()) ** 2)
+
+
+def band_cgls(A, r: torch.Tensor, band: torch.Tensor, iterations: int,
+              stop: Optional[Callable[[torch.Tensor], bool]] = None,
+              iterates: Optional[Callable[[int, torch.Tensor], None]] = None) -> tuple[torch.Tensor, list[float]]:
+    """CGLS on ``(A M) x = r`` from ``x = 0``, ``M`` the 0/1 mask ``band [nx, ny, nz]``.
+
+    ``A`` has ``forward(volume [nx, ny, nz]) -> [N, nV, nU]`` and its adjoint ``back``. Before
+    each iteration ``stop(residual)`` may end it; after iteration ``i`` (from 1),
+    ``iterates(i, x)`` sees the iterate (as the classical algorithms' ``iterates``). Returns ``(x [nx, ny, nz], mean squared residual
+    before the first iteration and after each)``; ``x`` is 0 outside the band.
+    """
+    m = band.to(r.dtype)
+    r = r.clone()
+    x = torch.zeros(band.shape, dtype=r.dtype, device=r.device)
+    history = [float((r * r).mean())]
+    s = A.back(r) * m
+    p, g = s.clone(), float((s * s).sum())
+    for _ in range(iterations):
+        if g == 0.0 or (stop is not None and stop(r)):
+            break
+        q = A.forward(p)
+        a = g / float((q * q).sum())
+        x += a * p
+        r -= a * q
+        history.append(float((r * r).mean()))
+        if iterates is not None:
+            iterates(len(history) - 1, x)
+        s = A.back(r) * m
+        gn = float((s * s).sum())
+        p, g = s + (gn / g) * p, gn
+    return x, history
+
+
+@torch.no_grad()
+def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tensor, A, A_fine, *, fine: int,
+                         sharpen: float) -> torch.Tensor:
+    """``d = A_f w - A box(w)`` [N, nV, nU]: the projections' part that no volume on the scene grid gives.
+
+    ``w`` [f nx, f ny, f nz] is the model's attenuation at the fine grid's centres inside the band
+    (its surfaces ``sharpen`` times sharper: ``s`` scaled for the query, restored after) and the
+    trilinear upsampling of ``volume`` [nx, ny, nz] elsewhere.
+    """
+    w = F.interpolate(volume[None, None], scale_factor=fine, mode="trilinear", align_corners=False)[0, 0]
+    fine_band = band.repeat_interleave(fine, 0).repeat_interleave(fine, 1).repeat_interleave(fine, 2)
+    idx = fine_band.nonzero()
+    axes = fine_geometry(geometry, fine).voxel_axes(device=volume.device)
+    boundary = model.boundary
+    saved = boundary.log_s.data.clone()
+    boundary.log_s.data += math.log(sharpen) / boundary.LOG_SCALE
+    try:
+        values = []
+        for i in range(0, len(idx), QUERY_CHUNK):
+            j = idx[i:i + QUERY_CHUNK]
+            pts = torch.stack([axes[0][j[:, 0]], axes[1][j[:, 1]], axes[2][j[:, 2]]], -1)
+            values.append(model.query(pts)["mu"].float())
+    finally:
+        boundary.log_s.data = saved
+    if values:
+        w[fine_band] = torch.cat(values).to(w.dtype)
+    return A_fine.forward(w) - A.forward(box_mean(w, fine))
+
+
+@dataclass
+class Correction:
+    """A band correction: ``grid`` [nx, ny, nz] (data units, 0 outside the band), the mean squared
+    residuals (before, after each iteration), the noise variance of the stop rule, the band's
+    share of the voxels and the seconds it took."""
+
+    grid: torch.Tensor
+    residuals: list[float]
+    noise_variance: float
+    band_fraction: float
+    seconds: float = 0.0
+
+    @property
+    def iterations(self) -> int:
+        return len(self.residuals) - 1
+
+    def to_json(self) -> dict:
+        return {"iterations": self.iterations, "residual_mean_square": self.residuals,
+                "noise_variance": self.noise_variance, "band_fraction": round(self.band_fraction, 4),
+                "seconds": round(self.seconds, 2)}
+
+
+@torch.no_grad()
+def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
+                    noise_factor: float = 2.0, fine: int = 3, sharpen: float = 2.0, gradient: float = 0.02,
+                    dilate: int = 1, progress: Optional[Callable[[str], None]] = None) -> Correction:
+    """The band correction of a surface ``model`` whose volume at the voxel centres is
+    ``volume`` [nx, ny, nz], against the training ``projections`` [N, nV, nU] at ``angles`` [N].
+
+    See the module docstring. ``progress(message)`` is told each phase.
+    """
+    import time
+
+    from .classical.projector import Projector
+
+    t0 = time.perf_counter()
+    say = progress or (lambda message: None)
+    volume = volume.float()
+    b = projections.float()
+    band = edge_band(volume, gradient, dilate)
+    A = Projector(geometry, angles, device=volume.device)
+    r = b - A.forward(volume)
+    sigma2, mean_square = noise_variance(r), float((r * r).mean())
+    if mean_square <= noise_factor * sigma2:  # at the noise level already, discretisation error and all: no need to model it
+        say(f"residual {mean_square:.3g} (mean square) is at the data's noise ({sigma2:.3g}); nothing to correct")
+        return Correction(torch.zeros_like(volume), [mean_square], sigma2, float(band.float().mean()), time.perf_counter() - t0)
+    say(f"band: {float(band.float().mean()):.1%} of the voxels; discretisation error on the {fine}x grid")
+    d = discretisation_error(model, geometry, volume, band, A, Projector(fine_geometry(geometry, fine), angles, device=volume.device),
+                             fine=fine, sharpen=sharpen)
+    r = r - d
+    sigma2 = noise_variance(r)
+    say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the band")
+    x, residuals = band_cgls(A, r, band, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
+    return Correction(x, residuals, sigma2, float(band.float().mean()), time.perf_counter() - t0)

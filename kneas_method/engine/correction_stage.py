@@ -1,0 +1,61 @@
+"""The band-correction stage of a neural run (``kneas_method.correction``).
+
+After training, ``correct_stage`` runs ``trainer.correction_passes`` passes on the trained surface
+model: each computes the band correction ``x`` of the model's volume ``v`` against the training
+projections and fits the model to ``v + x`` inside the band (``Trainer.fit_to_volume``), so the
+field, and with it the surfaces, carries the correction. A pass that stops at the noise level
+before its first iteration ends them. The passes' figures are kept in the checkpoint (rewritten at
+the same step), so a resumed run does not redo them and ``load_run`` opens the corrected model.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..console import say
+
+
+def correct_stage(trainer, scene, config, device) -> Optional[list]:
+    """The band-correction passes of a trained surface model; returns one dict per pass
+    (``Correction.to_json``), or None where the run has none."""
+    from ..correction import band_correction, edge_band
+    from .evaluate import sample_volume
+
+    t = config.trainer
+    model = trainer.model
+    if not t.correction_passes or not t.correction_iterations or not model.has_surfaces:
+        return None
+    if trainer.correction is not None:
+        say(f"correction: already done for this run ({len(trainer.correction)} passes, checkpoint {trainer.last_checkpoint})")
+        return trainer.correction
+    say(f"correction: up to {t.correction_passes} passes of what the {len(scene.train)} training views still say, in a band "
+        f"around the edges (at most {t.correction_iterations} CGLS iterations each), written into the model "
+        "(--trainer.correction-passes 0 skips it)")
+    started = time.perf_counter()
+    projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=device)
+    passes: list[dict] = []
+    for k in range(int(t.correction_passes)):
+        volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
+        with torch.no_grad():
+            result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,
+                                     iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
+                                     progress=lambda message: say(f"correction {k + 1}: {message}"))
+        passes.append(result.to_json())
+        if result.iterations == 0:
+            break
+        target = (volume + result.grid).clamp_min(0).cpu().numpy()
+        trainer.fit_to_volume(target, edge_band(volume).cpu().numpy(), int(t.correction_steps), int(t.correction_points),
+                              float(t.correction_lr))
+        say(f"correction {k + 1}: {result.iterations} iterations, residual {result.residuals[0]:.3g} -> {result.residuals[-1]:.3g} "
+            f"(noise {result.noise_variance:.3g}); model fitted to the corrected volume, {time.perf_counter() - started:.0f} s so far")
+    trainer.correction = passes
+    trainer.correction_time_s = time.perf_counter() - started
+    trainer.save(complete=True)
+    done = sum(1 for p in passes if p["iterations"] > 0)
+    say(f"correction: {done} pass{'es' if done != 1 else ''} written into the model in {trainer.correction_time_s:.0f} s"
+        + ("" if done == len(passes) else "; the last found nothing above the data's noise"))
+    return passes

@@ -1,0 +1,142 @@
+"""The band correction (kneas_method.correction): its pure functions against naive oracles, the
+correction of a known-answer surface model, the noise stop, the fit that writes it into the model,
+and the stage in a tiny run (metrics, checkpoint, reloading, resuming)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import exact_sphere_model, run, run_dir_of, sphere_scene, sphere_scene_file
+from kneas_method.classical.projector import Projector
+from kneas_method.correction import band_cgls, band_correction, box_mean, edge_band, noise_variance
+from kneas_method.data.simulate import SimulationConfig
+from kneas_method.engine.evaluate import sample_volume
+from kneas_method.evaluation.metrics import psnr3d
+
+SIM = SimulationConfig(n_voxel=24, voxel_mm=6.0, n_detector=32, n_train=16, n_val=2)
+
+
+def test_box_mean_matches_a_loop():
+    g = torch.Generator().manual_seed(0)
+    fine = torch.rand(6, 9, 3, generator=g)
+    out = box_mean(fine, 3)
+    assert out.shape == (2, 3, 1)
+    for a in range(2):
+        for b in range(3):
+            assert float(out[a, b, 0]) == pytest.approx(float(fine[3 * a:3 * a + 3, 3 * b:3 * b + 3, 0:3].mean()), abs=1e-6)
+
+
+def test_edge_band_marks_the_step_and_its_neighbours_only():
+    v = torch.zeros(12, 12, 12)
+    v[6:] = 0.5  # a step between x = 5 and x = 6
+    band = edge_band(v, gradient=0.02, dilate=1)
+    rows = band.any(-1).any(-1)
+    assert rows.tolist() == [False] * 4 + [True] * 4 + [False] * 4  # gradient at 5, 6; dilated to 4..7
+    assert torch.equal(edge_band(1000 * v), band)  # relative to the volume's level: any units
+    assert not edge_band(torch.full((8, 8, 8), 0.3)).any()
+
+
+def test_noise_variance_finds_white_noise_and_ignores_smooth_projections():
+    g = torch.Generator().manual_seed(1)
+    u = torch.linspace(-1, 1, 64)
+    smooth = (1 - u[None, :, None] ** 2) * (1 - u[None, None, :] ** 2) * torch.ones(4, 1, 1)
+    assert noise_variance(smooth) < 1e-5 * float((smooth * smooth).mean())
+    sigma = 0.01
+    noisy = smooth + sigma * torch.randn(smooth.shape, generator=g)
+    assert noise_variance(noisy) == pytest.approx(sigma ** 2, rel=0.15)
+    assert noise_variance(torch.zeros(2, 8, 8)) == 0.0
+
+
+def _sphere_problem():
+    scene = sphere_scene(SIM)
+    geometry, angles = scene.geometry, scene.train.angles
+    model = exact_sphere_model(scene, shift_mm=(4.0, 0.0, 0.0), sharpness=200.0)  # the spheres 2/3 voxel off
+    v = torch.as_tensor(sample_volume(model, geometry))
+    b = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32))
+    return scene, model, v, b
+
+
+def test_band_cgls_keeps_x_in_the_band_lowers_the_residual_and_honours_the_stop():
+    scene, model, v, b = _sphere_problem()
+    A = Projector(scene.geometry, scene.train.angles)
+    band = edge_band(v)
+    r = b - A.forward(v)
+    x, history = band_cgls(A, r, band, 4)
+    assert len(history) == 5 and all(h1 < h0 for h0, h1 in zip(history, history[1:]))
+    assert float(x[~band].abs().max()) == 0.0 and float(x[band].abs().max()) > 0
+    assert history[-1] == pytest.approx(float(((r - A.forward(x)) ** 2).mean()), rel=1e-3)  # the tracked residual is the true one
+    x0, h0 = band_cgls(A, r, band, 4, stop=lambda res: True)
+    assert h0 == history[:1] and float(x0.abs().max()) == 0.0
+
+
+def test_band_correction_moves_a_misplaced_surface_model_towards_the_truth():
+    scene, model, v, b = _sphere_problem()
+    gt = np.asarray(scene.image, dtype=np.float32)
+    result = band_correction(model, v, b, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0)
+    assert result.iterations == 3 and result.residuals[-1] < 0.5 * result.residuals[0]
+    before, after = psnr3d(v.numpy(), gt), psnr3d((v + result.grid).clamp_min(0).numpy(), gt)
+    assert after > before + 1.0, (before, after)
+    assert 0 < result.band_fraction < 0.6
+
+
+def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
+    scene, model, v, b = _sphere_problem()
+    g = torch.Generator().manual_seed(2)
+    noisy = b + 0.05 * float(b.max()) * torch.randn(b.shape, generator=g)  # noise far above the model's misfit
+    result = band_correction(model, v, noisy, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0)
+    assert result.iterations == 0 and float(result.grid.abs().max()) == 0.0
+    assert result.noise_variance == pytest.approx((0.05 * float(b.max())) ** 2, rel=0.3)
+
+
+def test_fit_to_volume_moves_the_model_towards_the_target_in_the_mask(tmp_path):
+    from kneas_method import presets, registry
+    from kneas_method.engine.trainer import Trainer
+
+    scene = sphere_scene(SIM)
+    cfg = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2)
+    trainer = Trainer(presets.resolve(cfg), scene, tmp_path, epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
+    gt = np.asarray(scene.image, dtype=np.float32)
+    mask = edge_band(torch.as_tensor(gt)).numpy()
+    before = sample_volume(trainer.model, scene.geometry)
+    state = {k: v.clone() for k, v in trainer.optimizer.state_dict()["state"].get(0, {}).items()}
+    trainer.fit_to_volume(gt, mask, steps=60, points_per_step=512, lr=1e-2)
+    after = sample_volume(trainer.model, scene.geometry)
+    assert np.mean((after - gt)[mask] ** 2) < 0.5 * np.mean((before - gt)[mask] ** 2)
+    assert {k: v for k, v in trainer.optimizer.state_dict()["state"].get(0, {}).items()}.keys() == state.keys()  # training optimiser untouched
+
+
+def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
+    from kneas_method.engine.checkpoint import load_latest_checkpoint
+    from kneas_method.engine.loading import load_run
+
+    scene_path = sphere_scene_file(tmp_path)
+    argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
+            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "2", "--trainer.epochs", "20",
+            "--trainer.correction-noise-factor", "0",  # no noise stop: every pass iterates
+            "--trainer.correction-steps", "30", "--trainer.correction-points", "1024"]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    run_dir = run_dir_of(out)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    passes = metrics["correction"]
+    assert len(passes) == 2 and all(p["iterations"] == 3 for p in passes), passes
+    assert all(p["residual_mean_square"][-1] < p["residual_mean_square"][0] for p in passes)
+    assert metrics["correction_time_s"] > 0 and "correction" in out.split("time per stage:")[1]
+    state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
+    assert state["extra"]["correction"] == passes and state["step"] == metrics["steps"]
+    loaded = load_run(run_dir)  # the corrected model is the run's model: what kneas-eval scores
+    assert math.isclose(psnr3d(sample_volume(loaded.model, loaded.scene.geometry), np.asarray(loaded.scene.image, np.float32)),
+                        metrics["psnr3d"], abs_tol=1e-4)
+    code, out, err = run(["--resume", str(run_dir)], capsys)
+    assert code == 0, err
+
+
+def test_the_correction_is_refused_for_a_model_without_surfaces(tmp_path, capsys):
+    code, out, err = run(["naf", "--scene", "foot", "--preset", "tiny", "--trainer.correction-passes", "2", "--dry-run"], capsys)
+    assert code != 0 and "no surfaces" in err and "Traceback" not in err
