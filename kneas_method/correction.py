@@ -43,6 +43,7 @@ __all__ = ["edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgl
 
 MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal noise
 QUERY_CHUNK = 262144
+FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
 
 
 def edge_band(volume: torch.Tensor, gradient: float = 0.02, dilate: int = 1) -> torch.Tensor:
@@ -174,7 +175,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     """The band correction of a surface ``model`` whose volume at the voxel centres is
     ``volume`` [nx, ny, nz], against the training ``projections`` [N, nV, nU] at ``angles`` [N].
 
-    See the module docstring. ``progress(message)`` is told each phase.
+    See the module docstring. ``fine`` is lowered (to 2 at least) where the finer grid would hold more
+    than ``FINE_VOXELS_AT_MOST`` voxels. ``progress(message)`` is told each phase.
     """
     import time
 
@@ -182,6 +184,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
 
     t0 = time.perf_counter()
     say = progress or (lambda message: None)
+    voxels = math.prod(geometry.n_voxel)
+    fine = max(2, min(int(fine), int((FINE_VOXELS_AT_MOST / voxels) ** (1 / 3) + 1e-9)))  # memory: a 256^3 grid gets 2x
     volume = volume.float()
     b = projections.float()
     band = edge_band(volume, gradient, dilate)
