@@ -148,15 +148,19 @@ def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tens
 
 @dataclass
 class Correction:
-    """A band correction: ``grid`` [nx, ny, nz] (data units, 0 outside the band), the mean squared
-    residuals (before, after each iteration), the noise variance of the stop rule, the band's
-    share of the voxels and the seconds it took."""
+    """A band correction: ``grid`` [nx, ny, nz] (data units, 0 outside the band), the ``band``
+    [nx, ny, nz] (bool), the mean squared residuals (before, after each iteration), the noise
+    variance of the stop rule and the seconds it took."""
 
     grid: torch.Tensor
+    band: torch.Tensor
     residuals: list[float]
     noise_variance: float
-    band_fraction: float
     seconds: float = 0.0
+
+    @property
+    def band_fraction(self) -> float:
+        return float(self.band.float().mean())
 
     @property
     def iterations(self) -> int:
@@ -194,7 +198,7 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     sigma2, mean_square = noise_variance(r), float((r * r).mean())
     if mean_square <= noise_factor * sigma2:  # at the noise level already, discretisation error and all: no need to model it
         say(f"residual {mean_square:.3g} (mean square) is at the data's noise ({sigma2:.3g}); nothing to correct")
-        return Correction(torch.zeros_like(volume), [mean_square], sigma2, float(band.float().mean()), time.perf_counter() - t0)
+        return Correction(torch.zeros_like(volume), band, [mean_square], sigma2, time.perf_counter() - t0)
     say(f"band: {float(band.float().mean()):.1%} of the voxels; discretisation error on the {fine}x grid")
     d = discretisation_error(model, geometry, volume, band, A, Projector(fine_geometry(geometry, fine), angles, device=volume.device),
                              fine=fine, sharpen=sharpen)
@@ -202,4 +206,4 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     sigma2 = noise_variance(r)
     say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the band")
     x, residuals = band_cgls(A, r, band, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
-    return Correction(x, residuals, sigma2, float(band.float().mean()), time.perf_counter() - t0)
+    return Correction(x, band, residuals, sigma2, time.perf_counter() - t0)

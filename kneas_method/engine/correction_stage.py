@@ -22,7 +22,7 @@ from ..console import say
 def correct_stage(trainer, scene, config, device) -> Optional[list]:
     """The band-correction passes of a trained surface model; returns one dict per pass
     (``Correction.to_json``), or None where the run has none."""
-    from ..correction import band_correction, edge_band
+    from ..correction import band_correction
     from .evaluate import sample_volume
 
     t = config.trainer
@@ -48,7 +48,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
         if result.iterations == 0:
             break
         target = (volume + result.grid).clamp_min(0).cpu().numpy()
-        trainer.fit_to_volume(target, edge_band(volume).cpu().numpy(), int(t.correction_steps), int(t.correction_points),
+        trainer.fit_to_volume(target, result.band.cpu().numpy(), int(t.correction_steps), int(t.correction_points),
                               float(t.correction_lr))
         say(f"correction {k + 1}: {result.iterations} iterations, residual {result.residuals[0]:.3g} -> {result.residuals[-1]:.3g} "
             f"(noise {result.noise_variance:.3g}); model fitted to the corrected volume, {time.perf_counter() - started:.0f} s so far")
