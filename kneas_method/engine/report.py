@@ -62,7 +62,7 @@ def classical_metrics(config, scene, reconstruction, evaluation, device) -> dict
 
 
 def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classical_time_s: float,
-                   classical_volume: Optional[str], session_wall_time_s: float, correction: Optional[dict] = None) -> dict:
+                   classical_volume: Optional[str], session_wall_time_s: float, correction: Optional[list] = None) -> dict:
     """``metrics.json`` of a neural run (``bounds``: a BoundsResult, or None without surfaces;
     ``correction``: the band-correction passes, or None where there were none)."""
     out, facts = _common(config, scene, evaluation, device)

@@ -268,31 +268,41 @@ class Trainer:
             raise KneasError(f"the warm start runs before training, but the {self.label} stage is at step {self.step}")
         started = time.perf_counter()
         points, targets = self._voxel_targets(volume, "warm-start")
-        optimizer = torch.optim.Adam(self.model.parameters(), lr=float(self.config.trainer.lr))
         gen = torch.Generator(device="cpu")
         gen.manual_seed(int(self.config.seed) + 104729)
         n = min(int(points_per_step), len(points))
-        self.model.train()
-        values: dict[str, float] = {}
-        with stage_progress(self.console) as progress:
-            task = progress.add_task(f"{self.label} warm start", total=int(steps), info=f"fit to the {what} volume")
-            for i in range(int(steps)):
-                idx = torch.randint(0, len(points), (n,), generator=gen).to(self.device)
-                losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=float(occupancy_weight))
-                optimizer.zero_grad(set_to_none=True)
-                if not torch.isfinite(losses["total"]):
-                    raise KneasError(f"non-finite loss in the warm start (step {i}); check the {what} volume or use --trainer.warm-start none")
-                losses["total"].backward()
-                optimizer.step()
-                if i % 10 == 0 or i == steps - 1:
-                    values = {k: float(v.detach()) for k, v in losses.items() if k != "total"}
-                    progress.update(task, completed=i + 1, info=format_losses(values))
-            progress.update(task, completed=int(steps))
-        self.model.zero_grad(set_to_none=True)
+        values = self._fit_steps(points, targets, lambda: torch.randint(0, len(points), (n,), generator=gen).to(self.device),
+                                 int(steps), float(self.config.trainer.lr), float(occupancy_weight),
+                                 f"{self.label} warm start", f"fit to the {what} volume",
+                                 f"check the {what} volume or use --trainer.warm-start none")
         for k, v in values.items():
             self._record(f"warm_start_{k}", v)
         self.warm_start_time_s = time.perf_counter() - started
         return self.warm_start_time_s
+
+    def _fit_steps(self, points: torch.Tensor, targets: torch.Tensor, draw, steps: int, lr: float, occupancy_weight: float,
+                   task: str, info: str, fix: str) -> dict[str, float]:
+        """``steps`` Adam steps (a fresh optimiser at ``lr``) fitting ``mu`` at ``points[draw()]`` to
+        ``targets`` (``CTModel.volume_loss_dict``), with a progress bar; returns the last loss values."""
+        optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
+        self.model.train()
+        values: dict[str, float] = {}
+        with stage_progress(self.console) as progress:
+            bar = progress.add_task(task, total=steps, info=info)
+            for i in range(steps):
+                idx = draw()
+                losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight)
+                optimizer.zero_grad(set_to_none=True)
+                if not torch.isfinite(losses["total"]):
+                    raise KneasError(f"non-finite loss in the {task} (step {i}); {fix}")
+                losses["total"].backward()
+                optimizer.step()
+                if i % 10 == 0 or i == steps - 1:
+                    values = {k: float(v.detach()) for k, v in losses.items() if k != "total"}
+                    progress.update(bar, completed=i + 1, info=format_losses(values))
+            progress.update(bar, completed=steps)
+        self.model.zero_grad(set_to_none=True)
+        return values
 
     def fit_to_volume(self, volume: np.ndarray, mask: np.ndarray, steps: int, points_per_step: int, lr: float) -> None:
         """Fit the trained model to ``volume`` (data units, the scene's grid) for ``steps`` Adam steps
@@ -303,22 +313,16 @@ class Trainer:
         inside = torch.as_tensor(np.asarray(mask).reshape(-1), device=self.device).nonzero()[:, 0]
         if len(inside) == 0:
             return
-        optimizer = torch.optim.Adam(self.model.parameters(), lr=float(lr))
         gen = torch.Generator(device="cpu")
         gen.manual_seed(int(self.config.seed) + 7919 + self.step)
         n = int(points_per_step)
-        self.model.train()
-        for _ in range(int(steps)):
-            idx = torch.cat([inside[torch.randint(0, len(inside), (n,), generator=gen).to(self.device)],
-                             torch.randint(0, len(points), (n // 4,), generator=gen).to(self.device)])
-            losses = self.model.volume_loss_dict(points[idx], targets[idx])
-            optimizer.zero_grad(set_to_none=True)
-            if not torch.isfinite(losses["total"]):
-                raise KneasError("non-finite loss while writing the band correction into the model; "
-                                 "use --trainer.correction-passes 0")
-            losses["total"].backward()
-            optimizer.step()
-        self.model.zero_grad(set_to_none=True)
+
+        def draw() -> torch.Tensor:
+            return torch.cat([inside[torch.randint(0, len(inside), (n,), generator=gen).to(self.device)],
+                              torch.randint(0, len(points), (n // 4,), generator=gen).to(self.device)])
+
+        self._fit_steps(points, targets, draw, int(steps), float(lr), 0.0, f"{self.label} correction fit",
+                        "fit to the corrected volume in the band", "use --trainer.correction-passes 0")
         self.model.eval()
 
     def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
