@@ -42,7 +42,7 @@ __all__ = ["edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgl
            "band_correction", "Correction"]
 
 MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal noise
-QUERY_CHUNK = 262144
+QUERY_CHUNK = 32768  # points per model query: 2x faster on a CPU than 262144 (cache)
 FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
 
 
@@ -117,6 +117,11 @@ def band_cgls(A, r: torch.Tensor, band: torch.Tensor, iterations: int,
     return x, history
 
 
+def _grid_points(axes: list[torch.Tensor], idx: torch.Tensor) -> torch.Tensor:
+    """Integer voxel indices [P, 3] -> their centres [P, 3] on a grid with per-axis centres ``axes``."""
+    return torch.stack([axes[0][idx[:, 0]], axes[1][idx[:, 1]], axes[2][idx[:, 2]]], -1)
+
+
 @torch.no_grad()
 def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tensor, A, A_fine, *, fine: int,
                          sharpen: float) -> torch.Tensor:
@@ -136,9 +141,7 @@ def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tens
     try:
         values = []
         for i in range(0, len(idx), QUERY_CHUNK):
-            j = idx[i:i + QUERY_CHUNK]
-            pts = torch.stack([axes[0][j[:, 0]], axes[1][j[:, 1]], axes[2][j[:, 2]]], -1)
-            values.append(model.query(pts)["mu"].float())
+            values.append(model.query(_grid_points(axes, idx[i:i + QUERY_CHUNK]))["mu"].float())
     finally:
         boundary.log_s.data = saved
     if values:
@@ -157,6 +160,8 @@ class Correction:
     residuals: list[float]
     noise_variance: float
     seconds: float = 0.0
+    discretisation: Optional[torch.Tensor] = None  # d [N, nV, nU] used (None: not needed)
+    reused: bool = False  # d came from an earlier pass
 
     @property
     def band_fraction(self) -> float:
@@ -169,18 +174,21 @@ class Correction:
     def to_json(self) -> dict:
         return {"iterations": self.iterations, "residual_mean_square": self.residuals,
                 "noise_variance": self.noise_variance, "band_fraction": round(self.band_fraction, 4),
+                "discretisation": None if self.discretisation is None else ("reused" if self.reused else "computed"),
                 "seconds": round(self.seconds, 2)}
 
 
 @torch.no_grad()
 def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
-                    noise_factor: float = 2.0, fine: int = 3, sharpen: float = 2.0, gradient: float = 0.02,
-                    dilate: int = 1, progress: Optional[Callable[[str], None]] = None) -> Correction:
+                    noise_factor: float = 2.0, fine: int = 3, sharpen: float = 2.0,
+                    gradient: float = 0.02, dilate: int = 1, discretisation: Optional[torch.Tensor] = None,
+                    progress: Optional[Callable[[str], None]] = None) -> Correction:
     """The band correction of a surface ``model`` whose volume at the voxel centres is
     ``volume`` [nx, ny, nz], against the training ``projections`` [N, nV, nU] at ``angles`` [N].
 
-    See the module docstring. ``fine`` is lowered (to 2 at least) where the finer grid would hold more
-    than ``FINE_VOXELS_AT_MOST`` voxels. ``progress(message)`` is told each phase.
+    See the module docstring. ``discretisation``: ``d`` [N, nV, nU] of an earlier pass
+    (``Correction.discretisation``), used instead of computing it again. ``fine`` is lowered (to 2
+    at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels. ``progress(message)`` is told each phase.
     """
     import time
 
@@ -199,11 +207,17 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     if mean_square <= noise_factor * sigma2:  # at the noise level already, discretisation error and all: no need to model it
         say(f"residual {mean_square:.3g} (mean square) is at the data's noise ({sigma2:.3g}); nothing to correct")
         return Correction(torch.zeros_like(volume), band, [mean_square], sigma2, time.perf_counter() - t0)
-    say(f"band: {float(band.float().mean()):.1%} of the voxels; discretisation error on the {fine}x grid")
-    d = discretisation_error(model, geometry, volume, band, A, Projector(fine_geometry(geometry, fine), angles, device=volume.device),
-                             fine=fine, sharpen=sharpen)
+    reused = discretisation is not None
+    if reused:
+        say(f"band: {float(band.float().mean()):.1%} of the voxels; the discretisation error of the last pass")
+        d = discretisation
+    else:
+        say(f"band: {float(band.float().mean()):.1%} of the voxels; discretisation error on the {fine}x grid")
+        d = discretisation_error(model, geometry, volume, band, A,
+                                 Projector(fine_geometry(geometry, fine), angles, device=volume.device),
+                                 fine=fine, sharpen=sharpen)
     r = r - d
     sigma2 = noise_variance(r)
     say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the band")
     x, residuals = band_cgls(A, r, band, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
-    return Correction(x, band, residuals, sigma2, time.perf_counter() - t0)
+    return Correction(x, band, residuals, sigma2, time.perf_counter() - t0, d, reused)

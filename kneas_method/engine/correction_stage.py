@@ -38,12 +38,15 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     started = time.perf_counter()
     projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=device)
     passes: list[dict] = []
+    discretisation = None
     for k in range(int(t.correction_passes)):
         volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
         with torch.no_grad():
             result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,
                                      iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
+                                     discretisation=None if k % int(t.correction_refresh) == 0 else discretisation,
                                      progress=lambda message: say(f"correction {k + 1}: {message}"))
+        discretisation = result.discretisation
         passes.append(result.to_json())
         if result.iterations == 0:
             break
