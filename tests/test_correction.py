@@ -83,6 +83,13 @@ def test_band_correction_moves_a_misplaced_surface_model_towards_the_truth():
     before, after = psnr3d(v.numpy(), gt), psnr3d((v + result.grid).clamp_min(0).numpy(), gt)
     assert after > before + 1.0, (before, after)
     assert 0 < result.band_fraction < 0.6
+    assert not result.reused and result.to_json()["discretisation"] == "computed"
+    again = band_correction(model, v, b, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0,
+                            discretisation=result.discretisation)  # a later pass reusing this pass's d
+    assert again.reused and again.to_json()["discretisation"] == "reused" and torch.equal(again.grid, result.grid)
+    ignored = band_correction(model, v, b, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0,
+                              discretisation=torch.zeros_like(result.discretisation))
+    assert not torch.allclose(ignored.grid, result.grid)  # the d given is the one used
 
 
 def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
@@ -126,6 +133,7 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     metrics = json.loads((run_dir / "metrics.json").read_text())
     passes = metrics["correction"]
     assert len(passes) == 2 and all(p["iterations"] == 3 for p in passes), passes
+    assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --trainer.correction-refresh 2
     assert all(p["residual_mean_square"][-1] < p["residual_mean_square"][0] for p in passes)
     assert metrics["correction_time_s"] > 0 and "correction" in out.split("time per stage:")[1]
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
@@ -137,6 +145,8 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     assert code == 0, err
 
 
-def test_the_correction_is_refused_for_a_model_without_surfaces(tmp_path, capsys):
+def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     code, out, err = run(["naf", "--scene", "foot", "--preset", "tiny", "--trainer.correction-passes", "2", "--dry-run"], capsys)
     assert code != 0 and "no surfaces" in err and "Traceback" not in err
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-refresh", "0", "--dry-run"], capsys)
+    assert code != 0 and "correction_refresh" in err and "Traceback" not in err
