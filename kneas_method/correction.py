@@ -117,11 +117,6 @@ def band_cgls(A, r: torch.Tensor, band: torch.Tensor, iterations: int,
     return x, history
 
 
-def _grid_points(axes: list[torch.Tensor], idx: torch.Tensor) -> torch.Tensor:
-    """Integer voxel indices [P, 3] -> their centres [P, 3] on a grid with per-axis centres ``axes``."""
-    return torch.stack([axes[0][idx[:, 0]], axes[1][idx[:, 1]], axes[2][idx[:, 2]]], -1)
-
-
 @torch.no_grad()
 def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tensor, A, A_fine, *, fine: int,
                          sharpen: float) -> torch.Tensor:
@@ -141,7 +136,9 @@ def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tens
     try:
         values = []
         for i in range(0, len(idx), QUERY_CHUNK):
-            values.append(model.query(_grid_points(axes, idx[i:i + QUERY_CHUNK]))["mu"].float())
+            j = idx[i:i + QUERY_CHUNK]
+            pts = torch.stack([axes[0][j[:, 0]], axes[1][j[:, 1]], axes[2][j[:, 2]]], -1)
+            values.append(model.query(pts)["mu"].float())
     finally:
         boundary.log_s.data = saved
     if values:
@@ -188,7 +185,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
 
     See the module docstring. ``discretisation``: ``d`` [N, nV, nU] of an earlier pass
     (``Correction.discretisation``), used instead of computing it again. ``fine`` is lowered (to 2
-    at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels. ``progress(message)`` is told each phase.
+    at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels.
+    ``progress(message)`` is told each phase.
     """
     import time
 
