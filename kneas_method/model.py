@@ -306,18 +306,32 @@ class CTModel(nn.Module):
         """FieldOutputs at ``points`` -> ``mu`` (and, with surfaces, ``weights``, ``distances``,
         ``mu_materials``, ``grads``). Outside the occupancy grid (when there is one) ``mu`` and the
         weights are 0 and every distance is positive (outside every material; same magnitude)."""
-        occ = self.occupied(points)
         if out.distances is None:
+            occ = self.occupied(points)
             return {"mu": out.mu if occ is None else out.mu * occ}
-        distances = out.distances if occ is None else torch.where(occ[:, None] > 0, out.distances, out.distances.abs())
-        mu_bar = self.attenuation(out.features)
-        mu, weights = self.selector(distances, mu_bar, self.boundary)
-        if occ is not None:
-            mu, weights = mu * occ, weights * occ[:, None]
-        q = {"mu": mu, "weights": weights, "distances": distances, "mu_materials": mu_bar}
+        q = self.compose(points, out.distances, self.attenuation(out.features))
         if out.distance_gradients is not None:
             q["grads"] = out.distance_gradients
         return q
+
+    def material_fields(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The smooth fields a surface model's attenuation is composed of, at ``points`` [P, 3]:
+        ``(distances [P, K], mu_materials [P, K])``, before the selector and the occupancy grid."""
+        out = self.field.get_outputs(points)
+        return out.distances, self.attenuation(out.features)
+
+    def compose(self, points: torch.Tensor, distances: torch.Tensor, mu_materials: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``mu`` [P], ``weights``, ``distances`` and ``mu_materials`` [P, K] at ``points`` [P, 3] from
+        per-material distances and attenuations there (``material_fields``, or values interpolated
+        from them): the selector at the current sharpness, then the occupancy grid (outside it ``mu``
+        and the weights are 0 and every distance positive, same magnitude)."""
+        occ = self.occupied(points)
+        if occ is not None:
+            distances = torch.where(occ[:, None] > 0, distances, distances.abs())
+        mu, weights = self.selector(distances, mu_materials, self.boundary)
+        if occ is not None:
+            mu, weights = mu * occ, weights * occ[:, None]
+        return {"mu": mu, "weights": weights, "distances": distances, "mu_materials": mu_materials}
 
     @property
     def fused_eikonal(self) -> bool:

@@ -14,7 +14,8 @@ import torch
 
 from conftest import exact_sphere_model, run, run_dir_of, sphere_scene, sphere_scene_file
 from kneas_method.classical.projector import Projector
-from kneas_method.correction import band_cgls, band_correction, box_mean, edge_band, noise_variance
+from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band,
+                                     fine_geometry, interpolate_fields, noise_variance)
 from kneas_method.data.simulate import SimulationConfig
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.evaluation.metrics import psnr3d
@@ -73,6 +74,53 @@ def test_band_cgls_keeps_x_in_the_band_lowers_the_residual_and_honours_the_stop(
     assert history[-1] == pytest.approx(float(((r - A.forward(x)) ** 2).mean()), rel=1e-3)  # the tracked residual is the true one
     x0, h0 = band_cgls(A, r, band, 4, stop=lambda res: True)
     assert h0 == history[:1] and float(x0.abs().max()) == 0.0
+
+
+def naive_discretisation_error(model, geometry, volume, band, A, A_fine, *, fine, sharpen):
+    """Test oracle: the model queried at every fine centre of the band (twice as sharp edges)."""
+    w = torch.nn.functional.interpolate(volume[None, None], scale_factor=fine, mode="trilinear", align_corners=False)[0, 0]
+    fine_band = band.repeat_interleave(fine, 0).repeat_interleave(fine, 1).repeat_interleave(fine, 2)
+    points = fine_geometry(geometry, fine).voxel_centres().reshape(-1, 3)[fine_band.reshape(-1)]
+    saved = model.boundary.log_s.data.clone()
+    model.boundary.log_s.data += math.log(sharpen) / model.boundary.LOG_SCALE
+    with torch.no_grad():
+        w[fine_band] = model.query(points)["mu"].float()
+    model.boundary.log_s.data = saved
+    return A_fine.forward(w) - A.forward(box_mean(w, fine))
+
+
+def test_interpolate_fields_is_exact_on_a_linear_field_and_refuses_corners_not_queried():
+    g = torch.Generator().manual_seed(0)
+    index = torch.arange(5 * 6 * 7).reshape(5, 6, 7)
+    ijk = torch.stack(torch.meshgrid(*(torch.arange(n).float() for n in (5, 6, 7)), indexing="ij"), -1).reshape(-1, 3)
+    slope = torch.tensor([[0.3, -1.2], [2.0, 0.5], [-0.7, 1.1]])
+    table = ijk @ slope + torch.tensor([0.1, -0.2])
+    coords = torch.rand(200, 3, generator=g) * torch.tensor([4.0, 5.0, 6.0])  # inside the grid's centres
+    assert torch.allclose(interpolate_fields(index, table, coords), coords @ slope + torch.tensor([0.1, -0.2]), atol=1e-5)
+    assert torch.allclose(interpolate_fields(index, table, ijk[:10]), table[:10])  # at the centres: the values
+    index[2, 3, 4] = -1
+    with pytest.raises(RuntimeError, match="outside the queried band"):
+        interpolate_fields(index, table, torch.tensor([[2.5, 3.5, 3.5]]))
+
+
+def test_discretisation_error_from_interpolated_fields_matches_querying_every_fine_point():
+    scene, model, v, b = _sphere_problem()
+    geometry, angles = scene.geometry, scene.train.angles
+    band = edge_band(v)
+    A, A_fine = Projector(geometry, angles), Projector(fine_geometry(geometry, 3), angles)
+    naive = naive_discretisation_error(model, geometry, v, band, A, A_fine, fine=3, sharpen=2.0)
+    assert float(naive.abs().max()) > 0
+    same_grid = discretisation_error(model, geometry, v, band, A, A_fine, fine=3, sharpen=2.0, coarse=3)
+    assert torch.allclose(same_grid, naive, atol=1e-6 * float(naive.abs().max()))  # interpolation at the centres: exact
+    coarse = discretisation_error(model, geometry, v, band, A, A_fine, fine=3, sharpen=2.0)  # the default, 2x grid
+    deviation = float(((coarse - naive) ** 2).mean())
+    assert deviation < 3e-3 * float((naive ** 2).mean())  # 1.1e-3 measured
+    truth = b - A.forward(torch.as_tensor(np.asarray(scene.image, dtype=np.float32)))  # the exact data's d
+    assert deviation < 0.01 * float(((naive - truth) ** 2).mean())  # far below the estimate's own error
+    index, table = band_fields(model, geometry, band, 2)
+    assert index.shape == (48, 48, 48) and table.shape == (int((index >= 0).sum()), 4)  # K = 2: distances, attenuations
+    assert bool((index[band.repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)] >= 0).all())
+    assert float(model.boundary.log_s.detach()) == pytest.approx(math.log(200.0) / model.boundary.LOG_SCALE)  # sharpness restored
 
 
 def test_band_correction_moves_a_misplaced_surface_model_towards_the_truth():
