@@ -21,8 +21,9 @@ training projections ``b`` with this project's Joseph projector ``A`` (``kneas_m
   once the error is confined to the band); ``data`` ``b - A v``; ``data_exact_discretisation``
   ``b - d - A v`` with ``d = A_f g_f - A box(g_f)`` from the phantom on the fine grid (the best a
   discretisation estimate can do at that resolution); ``data_field_discretisation`` the same ``d``
-  computed from the run's own field (queried on the fine grid inside the band, 2x sharper, the
-  trilinear upsampling of ``v`` elsewhere; ``kneas_method.correction.discretisation_error``) - what
+  computed from the run's own field (on the fine grid inside the band, 2x sharper, from its fields
+  queried on a 2x grid and interpolated; the trilinear upsampling of ``v`` elsewhere;
+  ``kneas_method.correction.discretisation_error``) - what
   the cpu preset's band correction does after training, here without its noise stop.
   ``fine_floor`` and the exact row need an analytic phantom: built-in scenes only.
 
