@@ -125,8 +125,8 @@ class TrainerConfig:
             computing it (the model queried on a finer grid) is the dearest part of a pass.
         correction_noise_factor: a pass's iterations stop once the residual's mean square is within
             this factor of the data's noise variance (estimated from the residual; the discrepancy
-            principle), so a noisy scan is not fitted to its noise (cpu 1.5: on the noisy held-out
-            scans the residual is within 1.01 of its noise estimate before the first pass).
+            principle), so a noisy scan is not fitted to its noise (1.5: on the noisy held-out scans
+            the residual is within 1.01 of its noise estimate before the first pass).
         correction_steps / correction_lr / correction_points: the fit of each pass: Adam steps,
             learning rate and band voxel centres per step (and a quarter as many anywhere).
         log_every: steps between loss-history / learning-rate records.
