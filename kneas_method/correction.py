@@ -121,6 +121,12 @@ def band_cgls(A, r: torch.Tensor, band: torch.Tensor, iterations: int,
     return x, history
 
 
+def _centres(axes, ijk: torch.Tensor) -> torch.Tensor:
+    """The centres [P, 3] (model units) of the cells ``ijk`` [P, 3] of a grid with ``axes``
+    (``Geometry.voxel_axes``)."""
+    return torch.stack([axes[0][ijk[:, 0]], axes[1][ijk[:, 1]], axes[2][ijk[:, 2]]], -1)
+
+
 def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The surface ``model``'s smooth fields on a grid ``coarse`` times finer than the scene's, where
     they are needed to interpolate anywhere in the ``band`` [nx, ny, nz] (its refinement, dilated
@@ -136,7 +142,7 @@ def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch
     table = []
     for i in range(0, len(cells), QUERY_CHUNK):
         j = cells[i:i + QUERY_CHUNK]
-        distances, mu_materials = model.material_fields(torch.stack([axes[0][j[:, 0]], axes[1][j[:, 1]], axes[2][j[:, 2]]], -1))
+        distances, mu_materials = model.material_fields(_centres(axes, j))
         table.append(torch.cat([distances, mu_materials], -1).float())
     return index, (torch.cat(table) if table else torch.zeros(0, 0, device=band.device))
 
@@ -189,8 +195,7 @@ def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tens
         for i in range(0, len(idx), INTERPOLATION_CHUNK):
             j = idx[i:i + INTERPOLATION_CHUNK]
             fields = interpolate_fields(index, table, (j.float() + 0.5) * (coarse / fine) - 0.5)
-            pts = torch.stack([axes[0][j[:, 0]], axes[1][j[:, 1]], axes[2][j[:, 2]]], -1)
-            values.append(model.compose(pts, fields[:, :K], fields[:, K:])["mu"].float())
+            values.append(model.compose(_centres(axes, j), fields[:, :K], fields[:, K:])["mu"].float())
     finally:
         boundary.log_s.data = saved
     if values:
