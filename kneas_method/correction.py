@@ -40,6 +40,8 @@ from typing import Callable, Optional
 import torch
 import torch.nn.functional as F
 
+from .errors import KneasError
+
 __all__ = ["edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
            "discretisation_error",
            "band_correction", "Correction"]
@@ -130,14 +132,17 @@ def _centres(axes, ijk: torch.Tensor) -> torch.Tensor:
 def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The surface ``model``'s smooth fields on a grid ``coarse`` times finer than the scene's, where
     they are needed to interpolate anywhere in the ``band`` [nx, ny, nz] (its refinement, dilated
-    by one of the finer voxels): ``(index [c nx, c ny, c nz] int64, -1 where not queried; table
+    by one of the finer voxels): ``(index [c nx, c ny, c nz] int32, -1 where not queried; table
     [P, 2K]: the distances then the per-material attenuations, ``CTModel.material_fields``)``."""
     c = int(coarse)
     grid = band.repeat_interleave(c, 0).repeat_interleave(c, 1).repeat_interleave(c, 2)
     grid = F.max_pool3d(grid.float()[None, None], 3, 1, 1)[0, 0] > 0
     cells = grid.nonzero()
-    index = torch.full(grid.shape, -1, dtype=torch.int64, device=band.device)
-    index[grid] = torch.arange(len(cells), device=band.device)
+    if len(cells) >= 2 ** 31:
+        raise KneasError(f"the band correction's {c}x grid would hold {len(cells):,} band cells, more than an int32 index "
+                         "holds; use --trainer.correction-passes 0 or a coarser reconstruction grid")
+    index = torch.full(grid.shape, -1, dtype=torch.int32, device=band.device)  # half of int64's memory (0.5 GB at 512^3)
+    index[grid] = torch.arange(len(cells), dtype=torch.int32, device=band.device)
     axes = fine_geometry(geometry, c).voxel_axes(device=band.device)
     table = []
     for i in range(0, len(cells), QUERY_CHUNK):

@@ -118,7 +118,7 @@ def test_discretisation_error_from_interpolated_fields_matches_querying_every_fi
     truth = b - A.forward(torch.as_tensor(np.asarray(scene.image, dtype=np.float32)))  # the exact data's d
     assert deviation < 0.01 * float(((naive - truth) ** 2).mean())  # far below the estimate's own error
     index, table = band_fields(model, geometry, band, 2)
-    assert index.shape == (48, 48, 48) and table.shape == (int((index >= 0).sum()), 4)  # K = 2: distances, attenuations
+    assert index.shape == (48, 48, 48) and index.dtype == torch.int32 and table.shape == (int((index >= 0).sum()), 4)  # K = 2: distances, attenuations
     assert bool((index[band.repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)] >= 0).all())
     assert float(model.boundary.log_s.detach()) == pytest.approx(math.log(200.0) / model.boundary.LOG_SCALE)  # sharpness restored
 
