@@ -26,6 +26,7 @@ membership of the head phantom, which is not built in (no Chamfer; ``classical.p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -82,7 +83,7 @@ def heldout_scene(name: str):
         scene.name = "head-256"  # the phantom is "head"; the scene is named as its pickle
         return scene
     if name == "head-vox256":
-        scene = simulate_phantom(head_phantom(), SimulationConfig(n_voxel=256, voxel_mm=0.8, n_detector=256, n_train=50, n_val=10))
+        scene = simulate_phantom(head_phantom(), dataclasses.replace(head, n_voxel=256, voxel_mm=0.8))  # the same box, 8x the voxels
         scene.name = "head-vox256"
         return scene
     if name == "jaw-noisy":
