@@ -48,7 +48,10 @@ class StratifiedRaySampler:
         far = _as_column(far, n_rays, device, dtype)
         if stratified:
             edges = torch.linspace(0.0, 1.0, n_samples + 1, device=device, dtype=dtype)
-            u = torch.rand(n_rays, n_samples, device=device, dtype=dtype, generator=generator)
+            # drawn on the generator's device (the trainer's is a CPU one, so that a run draws the same
+            # jitter on any device and resumes anywhere), then moved to the rays'
+            u = torch.rand(n_rays, n_samples, dtype=dtype, generator=generator,
+                           device=generator.device if generator is not None else device).to(device)
             frac = edges[:-1] + (edges[1:] - edges[:-1]) * u
         else:
             frac = torch.linspace(0.0, 1.0, n_samples, device=device, dtype=dtype).expand(n_rays, n_samples)
