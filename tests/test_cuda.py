@@ -71,15 +71,18 @@ def test_model_outputs_cuda_match_cpu(tiny_scene):
         torch.testing.assert_close(on_gpu[key].cpu(), on_cpu[key], rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("preset, extra", [
-    ("tiny", []),
+@pytest.mark.parametrize("method, preset, extra", [
+    ("k-neas", "tiny", []),
     # the cpu preset's stages on a GPU: ASD-POCS warm start and bounds, occupancy grid, band correction
-    ("cpu", ["--trainer.epochs", "1", "--trainer.warm-start-steps", "10", "--trainer.correction-passes", "2"]),
+    ("k-neas", "cpu", ["--trainer.epochs", "1", "--trainer.warm-start-steps", "10", "--trainer.correction-passes", "2"]),
+    ("neas-2m", "tiny", []),  # the hard selector
+    ("naf", "tiny", []),  # a field without surfaces
+    ("sart", "tiny", []),  # a classical method's run folder
 ])
-def test_run_trained_on_cuda_evaluates_the_same_on_cpu(preset, extra, tiny_scene, tmp_path, capsys):
+def test_run_on_cuda_evaluates_the_same_on_cpu(method, preset, extra, tiny_scene, tmp_path, capsys):
     from kneas_method.cli import eval as eval_cli
 
-    code, out, err = run(["k-neas", "--scene", str(tiny_scene), "--preset", preset, "--device", "cuda",
+    code, out, err = run([method, "--scene", str(tiny_scene), "--preset", preset, "--device", "cuda",
                           "--output-dir", str(tmp_path / "out"), *extra], capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
