@@ -129,6 +129,10 @@ class TrainerConfig:
             the residual is within 1.01 of its noise estimate before the first pass).
         correction_steps / correction_lr / correction_points: the fit of each pass: Adam steps,
             learning rate and band voxel centres per step (and a quarter as many anywhere).
+        correction_curvature: weight of a surface-smoothness term in each pass's fit
+            (``losses.curvature``: the distances' gradients one voxel apart should agree near a
+            surface), so that what the views leave free of an edge is filled with a smooth surface
+            rather than the correction's ripples. 0 = the fit's MSE and eikonal term alone.
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -159,6 +163,7 @@ class TrainerConfig:
     correction_steps: int = 75
     correction_lr: float = 1e-4
     correction_points: int = 8192
+    correction_curvature: float = 3e-3
     log_every: int = 50
     max_bad_steps: int = 5
 

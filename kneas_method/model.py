@@ -28,6 +28,7 @@ from torch import nn
 from . import registry
 from .config import InstantiateConfig, update_from_dict
 from .errors import ConfigError
+from .losses.curvature import surface_smoothness
 from .renderer import RenderOutput, beer_lambert, integrate_samples, sample_points, segment_lengths, voxel_plane_samples
 
 Options = dict[str, Union[int, float, str, bool]]
@@ -399,7 +400,8 @@ class CTModel(nn.Module):
         return RenderOutput(intensity, line)
 
     # ------------------------------------------------------------------ losses
-    def volume_loss_dict(self, points: torch.Tensor, targets: torch.Tensor, occupancy_weight: float = 0.0) -> dict[str, torch.Tensor]:
+    def volume_loss_dict(self, points: torch.Tensor, targets: torch.Tensor, occupancy_weight: float = 0.0,
+                         curvature_weight: float = 0.0, steps: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
         """Loss terms for fitting the field to a known attenuation volume (the warm start).
 
         Args:
@@ -410,9 +412,13 @@ class CTModel(nn.Module):
                 material k" (``target > beta_k``; for k = 1, ``> alpha_1 / 2``). Unlike
                 the MSE it keeps a gradient where ``Omega`` is saturated, so a thin
                 material (cortical shells) appears even from the start-empty init.
+            curvature_weight: SDF models: weight of the surface-smoothness term
+                (``losses.curvature.surface_smoothness``) between the distance gradients at
+                ``points`` and at ``points + steps``.
+            steps: [P, 3] model units, the short steps of that term (their length is also its width).
 
         Returns ``volume`` (MSE of ``mu``), ``occupancy`` (when weighted), ``eikonal``
-        (SDF models, already times ``lambda_eikonal``) and ``total``.
+        (SDF models, already times ``lambda_eikonal``), ``curvature`` (when weighted) and ``total``.
         """
         fused = self.fused_eikonal
         if fused:
@@ -425,8 +431,22 @@ class CTModel(nn.Module):
             out["occupancy"] = occupancy_weight * self.occupancy_loss(q["distances"], targets)
         if self.eikonal is not None:
             out["eikonal"] = self.lambda_eikonal * self.eikonal(self.field.distances, points, q.get("distances"), grads=q.get("grads"))
+        if curvature_weight > 0 and self.has_surfaces:
+            grads = q["grads"] if "grads" in q else self.distance_gradients(points)
+            out["curvature"] = curvature_weight * surface_smoothness(grads, self.distance_gradients(points.detach() + steps),
+                                                                     q["distances"], float(steps.norm(dim=-1).mean()))
         out["total"] = sum(out.values())
         return out
+
+    def distance_gradients(self, points: torch.Tensor) -> torch.Tensor:
+        """Spatial gradients [P, K, 3] of the signed distances at ``points`` [P, 3]: in forward mode
+        where the field has it, else as the eikonal term gets them (autograd or finite differences)."""
+        if self.field.supports_gradients:
+            return self._with_gradients(points).distance_gradients
+        if self.eikonal is None:
+            raise ConfigError("the surface-smoothness term needs the distances' gradients: this field has no forward-mode "
+                              "gradients and the model no eikonal term; give --model.lambda-eikonal > 0")
+        return self.eikonal.gradients(self.field.distances, points)
 
     def label_thresholds(self) -> torch.Tensor:
         """``[K]`` the attenuation each material's label starts at (data units): ``beta_k``,

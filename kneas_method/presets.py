@@ -196,7 +196,7 @@ def resolve(config: RunConfig) -> RunConfig:
             and trainer.correction_refresh >= 1):
         raise ConfigError(f"trainer.correction_refresh must be a whole number >= 1 (passes between fresh discretisation "
                           f"errors), got {trainer.correction_refresh!r}")
-    for setting in ("correction_noise_factor", "correction_lr"):
+    for setting in ("correction_noise_factor", "correction_lr", "correction_curvature"):
         value = getattr(trainer, setting)
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
             raise ConfigError(f"trainer.{setting} must be a number >= 0, got {value!r}")

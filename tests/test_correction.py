@@ -166,6 +166,35 @@ def test_fit_to_volume_moves_the_model_towards_the_target_in_the_mask(tmp_path):
     assert {k: v for k, v in trainer.optimizer.state_dict()["state"].get(0, {}).items()}.keys() == state.keys()  # training optimiser untouched
 
 
+def test_fit_with_the_curvature_term_smooths_the_surfaces(tmp_path):
+    from kneas_method import presets, registry
+    from kneas_method.engine.trainer import Trainer
+    from kneas_method.losses.curvature import surface_smoothness
+
+    scene = sphere_scene(SIM)
+    cfg = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2)
+    gt = np.asarray(scene.image, dtype=np.float32)
+    mask = edge_band(torch.as_tensor(gt)).numpy()
+    pts = scene.geometry.voxel_centres().reshape(-1, 3)[torch.as_tensor(mask).reshape(-1)]
+    h = float(min(scene.geometry.d_voxel))
+    u = torch.randn(len(pts), 3, generator=torch.Generator().manual_seed(1))
+    steps = h * u / u.norm(dim=-1, keepdim=True)
+    smoothness, losses = [], []
+    for weight in (0.0, 1.0):
+        torch.manual_seed(0)
+        trainer = Trainer(presets.resolve(cfg), scene, tmp_path / str(weight), epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
+        trainer.fit_to_volume(gt, mask, steps=60, points_per_step=512, lr=1e-2, curvature=weight)
+        model = trainer.model
+        d = model.field.distances(pts).detach()
+        smoothness.append(float(surface_smoothness(model.distance_gradients(pts), model.distance_gradients(pts + steps), d, h).detach()))
+        losses.append(model.volume_loss_dict(pts[:64], torch.as_tensor(gt.reshape(-1))[torch.as_tensor(mask).reshape(-1)][:64],
+                                             curvature_weight=weight, steps=steps[:64]))
+    assert smoothness[1] < 0.5 * smoothness[0], smoothness
+    assert "curvature" not in losses[0] and float(losses[1]["curvature"]) > 0
+    losses[1]["curvature"].backward()  # the term reaches the field's parameters
+    assert any(p.grad is not None and float(p.grad.abs().sum()) > 0 for p in model.field.parameters())
+
+
 def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     from kneas_method.engine.checkpoint import load_latest_checkpoint
     from kneas_method.engine.loading import load_run

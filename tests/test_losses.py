@@ -76,3 +76,58 @@ def test_intensity_and_floater_losses():
     assert fl(torch.tensor([1.0, 0.5])).item() == pytest.approx(0.125)
     assert fl.active(0.0) and fl.active(0.19) and not fl.active(0.2) and not fl.active(0.9)
     assert FloaterLossConfig(fraction=0.5).setup().active(0.4)
+
+
+# -- surface smoothness (the band correction's fits) ---------------------------------------
+
+def _naive_surface_smoothness(grads, grads_step, distances, width):
+    """One point and material at a time: the oracle of ``surface_smoothness``."""
+    total, count = 0.0, 0
+    for p in range(grads.shape[0]):
+        for k in range(grads.shape[1]):
+            w = math.exp(-(float(distances[p, k]) / width) ** 2)
+            total += w * sum((float(grads[p, k, i]) - float(grads_step[p, k, i])) ** 2 for i in range(3))
+            count += 1
+    return total / count
+
+
+def test_surface_smoothness_matches_the_naive_oracle():
+    from kneas_method.losses.curvature import surface_smoothness
+
+    g = torch.Generator().manual_seed(3)
+    grads, step, dist = torch.randn(7, 2, 3, generator=g), torch.randn(7, 2, 3, generator=g), torch.randn(7, 2, generator=g)
+    assert float(surface_smoothness(grads, step, dist, 0.7)) == pytest.approx(_naive_surface_smoothness(grads, step, dist, 0.7), rel=1e-5)
+
+
+def _sphere_gradients(x, centre, radius):
+    """Distances [P, 1] and their gradients [P, 1, 3] of a sphere."""
+    r = x - centre
+    n = r.norm(dim=-1, keepdim=True)
+    return n - radius, (r / n)[:, None, :]
+
+
+def test_surface_smoothness_is_zero_for_a_plane_and_grows_with_curvature():
+    from kneas_method.losses.curvature import surface_smoothness
+
+    g = torch.Generator().manual_seed(4)
+    h = 0.02
+    u = torch.randn(500, 3, generator=g)
+    step = h * u / u.norm(dim=-1, keepdim=True)
+    # a plane: every normal the same
+    x = torch.rand(500, 3, generator=g) * 0.1
+    normal = torch.tensor([0.6, 0.0, 0.8])
+    d = (x @ normal)[:, None]
+    plane = surface_smoothness(normal.expand(500, 1, 3), normal.expand(500, 1, 3), d, h)
+    assert float(plane) == 0.0
+    # spheres: points on each surface, the term ~ (h / R)^2, so a 4x smaller sphere gives ~16x more
+    values = []
+    for radius in (0.4, 0.1):
+        dirs = torch.randn(500, 3, generator=g)
+        on = radius * dirs / dirs.norm(dim=-1, keepdim=True)
+        d, grads = _sphere_gradients(on, torch.zeros(3), radius)
+        _, grads_step = _sphere_gradients(on + step, torch.zeros(3), radius)
+        values.append(float(surface_smoothness(grads, grads_step, d, h)))
+    assert values[0] > 0 and 10 < values[1] / values[0] < 25
+    # far from every surface a point does not count
+    far = torch.full((500, 1), 10 * h)
+    assert float(surface_smoothness(grads, grads_step, far, h)) < 1e-30

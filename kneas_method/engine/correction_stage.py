@@ -52,7 +52,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
             break
         target = (volume + result.grid).clamp_min(0).cpu().numpy()
         trainer.fit_to_volume(target, result.band.cpu().numpy(), int(t.correction_steps), int(t.correction_points),
-                              float(t.correction_lr))
+                              float(t.correction_lr), curvature=float(t.correction_curvature))
         say(f"correction {k + 1}: {result.iterations} iterations, residual {result.residuals[0]:.3g} -> {result.residuals[-1]:.3g} "
             f"(noise {result.noise_variance:.3g}); model fitted to the corrected volume, {time.perf_counter() - started:.0f} s so far")
     trainer.correction = passes

@@ -281,9 +281,13 @@ class Trainer:
         return self.warm_start_time_s
 
     def _fit_steps(self, points: torch.Tensor, targets: torch.Tensor, draw, steps: int, lr: float, occupancy_weight: float,
-                   task: str, info: str, fix: str) -> dict[str, float]:
+                   task: str, info: str, fix: str, curvature: float = 0.0,
+                   generator: Optional[torch.Generator] = None) -> dict[str, float]:
         """``steps`` Adam steps (a fresh optimiser at ``lr``) fitting ``mu`` at ``points[draw()]`` to
-        ``targets`` (``CTModel.volume_loss_dict``), with a progress bar; returns the last loss values."""
+        ``targets`` (``CTModel.volume_loss_dict``), with a progress bar; returns the last loss values.
+        ``curvature`` > 0 adds the surface-smoothness term with steps of one voxel in random
+        directions drawn with ``generator``."""
+        voxel = float(min(self.scene.geometry.d_voxel))
         optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.model.train()
         values: dict[str, float] = {}
@@ -291,7 +295,12 @@ class Trainer:
             bar = progress.add_task(task, total=steps, info=info)
             for i in range(steps):
                 idx = draw()
-                losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight)
+                if curvature > 0:
+                    u = torch.randn(len(idx), 3, generator=generator).to(self.device)
+                    losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight,
+                                                         curvature_weight=curvature, steps=voxel * u / u.norm(dim=-1, keepdim=True))
+                else:
+                    losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight)
                 optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(losses["total"]):
                     raise KneasError(f"non-finite loss in the {task} (step {i}); {fix}")
@@ -304,10 +313,12 @@ class Trainer:
         self.model.zero_grad(set_to_none=True)
         return values
 
-    def fit_to_volume(self, volume: np.ndarray, mask: np.ndarray, steps: int, points_per_step: int, lr: float) -> None:
+    def fit_to_volume(self, volume: np.ndarray, mask: np.ndarray, steps: int, points_per_step: int, lr: float,
+                      curvature: float = 0.0) -> None:
         """Fit the trained model to ``volume`` (data units, the scene's grid) for ``steps`` Adam steps
         at ``lr``: each on ``points_per_step`` voxel centres inside ``mask`` [nx, ny, nz] (bool) and a
-        quarter as many anywhere, loss = MSE of ``mu`` + the eikonal term (``CTModel.volume_loss_dict``).
+        quarter as many anywhere, loss = MSE of ``mu`` + the eikonal term (``CTModel.volume_loss_dict``)
+        + ``curvature`` x the surface-smoothness term (``losses.curvature``; 0 = none).
         Seeded from the run's seed and the step; the training optimiser and RNG are untouched."""
         points, targets = self._voxel_targets(volume, "correction")
         inside = torch.as_tensor(np.asarray(mask).reshape(-1), device=self.device).nonzero()[:, 0]
@@ -322,7 +333,8 @@ class Trainer:
                               torch.randint(0, len(points), (n // 4,), generator=gen).to(self.device)])
 
         self._fit_steps(points, targets, draw, int(steps), float(lr), 0.0, f"{self.label} correction fit",
-                        "fit to the corrected volume in the band", "use --trainer.correction-passes 0")
+                        "fit to the corrected volume in the band", "use --trainer.correction-passes 0",
+                        curvature=float(curvature), generator=gen)
         self.model.eval()
 
     def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
