@@ -178,7 +178,7 @@ class RunConfig(InstantiateConfig):
         scene: built-in scene name or a path to a NAF pickle.
         views: keep this many training views, spread uniformly (None = all).
         preset: ``auto`` (paper with CUDA, else cpu); ``paper``: the paper's procedure (about 30 min
-            on one H200); ``cpu``: ASD-POCS start, band correction (5-8 min on 2 cores, about 1 min on
+            on one H200); ``cpu``: ASD-POCS start, band correction (6-9 min on 2 cores, about 1 min on
             a GPU); ``tiny``: smoke runs. README "Presets" says what each does.
         seed: seeds model initialisation and ray sampling.
         output_dir: parent folder of run folders.

@@ -295,12 +295,12 @@ class Trainer:
             bar = progress.add_task(task, total=steps, info=info)
             for i in range(steps):
                 idx = draw()
+                offsets = None
                 if curvature > 0:
                     u = torch.randn(len(idx), 3, generator=generator).to(self.device)
-                    losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight,
-                                                         curvature_weight=curvature, steps=voxel * u / u.norm(dim=-1, keepdim=True))
-                else:
-                    losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight)
+                    offsets = voxel * u / u.norm(dim=-1, keepdim=True)
+                losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight,
+                                                     curvature_weight=curvature, steps=offsets)
                 optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(losses["total"]):
                     raise KneasError(f"non-finite loss in the {task} (step {i}); {fix}")
