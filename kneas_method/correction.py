@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from .errors import KneasError
 
 __all__ = ["edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
+           "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
 
@@ -150,6 +151,27 @@ def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch
         distances, mu_materials = model.material_fields(_centres(axes, j))
         table.append(torch.cat([distances, mu_materials], -1).float())
     return index, (torch.cat(table) if table else torch.zeros(0, 0, device=band.device))
+
+
+@torch.no_grad()
+def requery_band(model, geometry, volume: torch.Tensor, band: torch.Tensor) -> torch.Tensor:
+    """``volume`` [nx, ny, nz] with the model's attenuation ``mu`` queried afresh at the centres of
+    the voxels in ``band`` [nx, ny, nz] (bool) and kept elsewhere: the model's volume after a fit
+    that moved it in the band, at the band's share of a whole query's cost. With every voxel in
+    the band it equals ``engine.evaluate.sample_volume``."""
+    was_training = model.training
+    model.eval()
+    try:
+        cells = band.nonzero()
+        out = volume.clone()
+        axes = geometry.voxel_axes(device=volume.device)
+        values = [model.query(_centres(axes, cells[i:i + QUERY_CHUNK]))["mu"].to(volume.dtype)
+                  for i in range(0, len(cells), QUERY_CHUNK)]
+        if values:
+            out[band] = torch.cat(values)
+    finally:
+        model.train(was_training)
+    return out
 
 
 def interpolate_fields(index: torch.Tensor, table: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ import torch
 
 from conftest import exact_sphere_model, run, run_dir_of, sphere_scene, sphere_scene_file
 from kneas_method.classical.projector import Projector
-from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band,
+from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band, requery_band,
                                      fine_geometry, interpolate_fields, noise_variance)
 from kneas_method.data.simulate import SimulationConfig
 from kneas_method.engine.evaluate import sample_volume
@@ -140,6 +140,18 @@ def test_band_correction_moves_a_misplaced_surface_model_towards_the_truth():
     assert not torch.allclose(ignored.grid, result.grid)  # the d given is the one used
 
 
+def test_requery_band_queries_the_band_and_keeps_the_rest():
+    scene, model, v, b = _sphere_problem()
+    geometry = scene.geometry
+    stale = torch.full_like(v, -1.0)  # a volume no model gives: what requery leaves is what it kept
+    whole = requery_band(model, geometry, stale, torch.ones_like(v, dtype=torch.bool))
+    assert torch.allclose(whole, v, atol=1e-6)  # every voxel in the band: the model's volume
+    band = edge_band(v)
+    part = requery_band(model, geometry, stale, band)
+    assert torch.allclose(part[band], v[band], atol=1e-6) and bool((part[~band] == -1.0).all())
+    assert torch.equal(requery_band(model, geometry, stale, torch.zeros_like(band)), stale)
+
+
 def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
     scene, model, v, b = _sphere_problem()
     g = torch.Generator().manual_seed(2)
@@ -210,7 +222,7 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     metrics = json.loads((run_dir / "metrics.json").read_text())
     passes = metrics["correction"]
     assert len(passes) == 2 and all(p["iterations"] == 3 for p in passes), passes
-    assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --trainer.correction-refresh 2
+    assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --trainer.correction-refresh 3
     assert all(p["residual_mean_square"][-1] < p["residual_mean_square"][0] for p in passes)
     assert metrics["correction_time_s"] > 0 and "correction" in out.split("time per stage:")[1]
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
