@@ -118,11 +118,12 @@ class TrainerConfig:
             corrected volume in that band (``correction_steps`` Adam steps at ``correction_lr``),
             so the field, its surfaces included, carries the correction. Surface models only; a pass
             that finds nothing above the noise ends them. 0 = off; None = the preset's (paper and
-            tiny 0; cpu 10).
+            tiny 0; cpu 12).
         correction_iterations: CGLS iterations per pass at most (cpu 3).
         correction_refresh: the discretisation error is computed afresh every this many passes
             and reused in between (1 = every pass): it moves little from one pass to the next, and
-            computing it (the model queried on a finer grid) is the dearest part of a pass.
+            computing it (the model queried on a finer grid) is the dearest part of a pass (3: the
+            cpu preset's 12 passes cost what 10 did with 2, measured in docs/experiments.md).
         correction_noise_factor: a pass's iterations stop once the residual's mean square is within
             this factor of the data's noise variance (estimated from the residual; the discrepancy
             principle), so a noisy scan is not fitted to its noise (1.5: on the noisy held-out scans
@@ -158,7 +159,7 @@ class TrainerConfig:
     anchor_edge_contrast: Optional[float] = None
     correction_passes: Optional[int] = None
     correction_iterations: int = 3
-    correction_refresh: int = 2
+    correction_refresh: int = 3
     correction_noise_factor: float = 1.5
     correction_steps: int = 75
     correction_lr: float = 1e-4
