@@ -140,6 +140,23 @@ def test_dense_and_hashed_paths_agree():
     torch.testing.assert_close(hashed(xv)[0], vals[row], rtol=0, atol=1e-12)
 
 
+def test_corner_rows_match_the_reference_hash_at_a_fine_level():
+    """A 4096-cell hashed level: vertex coordinates times the primes wrap int32 many times over,
+    and every corner's row is still the reference (uint32) hash's."""
+    cfg = HashGridConfig(num_levels=1, features_per_level=2, log2_hashmap_size=19, base_resolution=4096,
+                         implementation="torch")
+    enc = HashGridEncoding(cfg)
+    assert enc.layout.hashed == (True,)
+    x = torch.rand(200, 3) * 2 - 1
+    x[0] = 1.0  # the last cell
+    index, _ = enc.corners(x)
+    cell = torch.minimum(torch.floor((x + 1.0) * 0.5 * 4096.0), torch.tensor(4095.0)).long()  # the cells, as corners() finds them
+    for p in range(len(x)):
+        for c in range(8):
+            vert = cell[p] + torch.tensor([(c >> 2) & 1, (c >> 1) & 1, c & 1])
+            assert int(index[p, 0, c]) == ref_hash(*map(int, vert), 2**19)
+
+
 def test_each_level_reads_only_its_own_rows():
     """Level l's rows all hold the constant c_l -> output block l is c_l everywhere (offsets)."""
     enc = HashGridConfig(num_levels=4, log2_hashmap_size=8, base_resolution=2, implementation="torch").setup()
