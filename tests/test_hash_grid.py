@@ -62,7 +62,8 @@ def test_paper_layout_counts_exact():
 def test_invalid_settings_raise_one_line_config_errors():
     for kw in [dict(num_levels=0), dict(features_per_level=0), dict(log2_hashmap_size=40),
                dict(base_resolution=0), dict(per_level_scale=0.5), dict(implementation="cuda"),
-               dict(init_scale=-1.0)]:
+               dict(init_scale=-1.0),
+               dict(num_levels=2, log2_hashmap_size=30, base_resolution=2048)]:  # 2^31 table rows: past an int32 index
         with pytest.raises(ConfigError) as err:
             HashGridConfig(**kw).setup()
         assert "\n" not in str(err.value)

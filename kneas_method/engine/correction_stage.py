@@ -20,8 +20,8 @@ from ..console import say
 
 # After the first pass the model's volume is queried again only within this many voxels of the last
 # volume's edges (a pass fits the field within one): elsewhere the fit moves it by an rms of 6e-4
-# data units on abdomen, a max of 0.07 (docs/experiments.md, 46th stop), and the passes' psnr3d is
-# the same as with the whole volume queried.
+# data units on abdomen, at most 0.09 at single voxels (docs/experiments.md, 46th stop), and the
+# passes' psnr3d is the same as with the whole volume queried.
 REQUERY_DILATE = 2
 
 
@@ -49,7 +49,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     for k in range(int(t.correction_passes)):
         if volume is None:
             volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
-        else:  # the last fit moved the field in its band: query there again (a third of the voxels or less)
+        else:  # the last fit moved the field in its band: query there again (about a third of the voxels or less)
             volume = requery_band(model, scene.geometry, volume, edge_band(volume, dilate=REQUERY_DILATE))
         with torch.no_grad():
             result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,

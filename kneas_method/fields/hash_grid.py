@@ -247,6 +247,9 @@ class HashGridEncoding(nn.Module):
         super().__init__()
         self.config = config
         self.layout = hash_grid_layout(config, force_hash=force_hash)
+        if self.layout.n_entries >= 2**31:  # before the table is allocated
+            raise ConfigError(f"the hash grid's table would have {self.layout.n_entries:,} rows, more than an int32 index holds; "
+                              "lower log2_hashmap_size or num_levels")
         self.n_levels = config.num_levels
         self.n_features = config.features_per_level
         self.n_output_dims = self.n_levels * self.n_features
@@ -257,9 +260,6 @@ class HashGridEncoding(nn.Module):
 
         nd = lay.n_dense
         self._n_dense = nd
-        if lay.n_entries >= 2**31:
-            raise ConfigError(f"the hash grid's table would have {lay.n_entries:,} rows, more than an int32 index holds; "
-                              "lower log2_hashmap_size or num_levels")
         res = torch.tensor(lay.resolutions, dtype=torch.int64)
         self.register_buffer("_resolutions", res, persistent=False)  # [L]
         # Indices are computed in int32 (half the memory traffic of int64; the table has < 2^31 rows).
