@@ -42,7 +42,7 @@ import torch.nn.functional as F
 
 from .errors import KneasError
 
-__all__ = ["edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
+__all__ = ["grow", "edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
@@ -53,15 +53,20 @@ INTERPOLATION_CHUNK = 1 << 18  # fine points per interpolation of the queried fi
 FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
 
 
+def grow(mask: torch.Tensor, voxels: int = 1) -> torch.Tensor:
+    """bool [nx, ny, nz] -> bool [nx, ny, nz]: every voxel within ``voxels`` voxels (a cube) of a
+    voxel of ``mask``."""
+    if voxels <= 0:
+        return mask
+    return F.max_pool3d(mask.float()[None, None], 2 * voxels + 1, 1, voxels)[0, 0] > 0
+
+
 def edge_band(volume: torch.Tensor, gradient: float = 0.02, dilate: int = 1) -> torch.Tensor:
     """[nx, ny, nz] -> bool [nx, ny, nz]: within ``dilate`` voxels of a central-difference
     gradient magnitude above ``gradient`` times the volume's 99.5th percentile, per voxel."""
     level = float(torch.quantile(volume.flatten()[::max(1, volume.numel() // 1_000_000)].float(), 0.995))
     gx, gy, gz = torch.gradient(volume)
-    hot = ((gx * gx + gy * gy + gz * gz).sqrt() > gradient * level).float()[None, None]
-    if dilate > 0:
-        hot = F.max_pool3d(hot, 2 * dilate + 1, 1, dilate)
-    return hot[0, 0] > 0
+    return grow((gx * gx + gy * gy + gz * gz).sqrt() > gradient * level, dilate)
 
 
 def box_mean(volume: torch.Tensor, f: int) -> torch.Tensor:
@@ -137,7 +142,7 @@ def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch
     [P, 2K]: the distances then the per-material attenuations, ``CTModel.material_fields``)``."""
     c = int(coarse)
     grid = band.repeat_interleave(c, 0).repeat_interleave(c, 1).repeat_interleave(c, 2)
-    grid = F.max_pool3d(grid.float()[None, None], 3, 1, 1)[0, 0] > 0
+    grid = grow(grid)
     cells = grid.nonzero()
     if len(cells) >= 2 ** 31:
         raise KneasError(f"the band correction's {c}x grid would hold {len(cells):,} band cells, more than an int32 index "

@@ -18,17 +18,17 @@ import torch
 
 from ..console import say
 
-# After the first pass the model's volume is queried again only within this many voxels of the last
-# volume's edges (a pass fits the field within one): elsewhere the fit moves it by an rms of 6e-4
-# data units on abdomen, at most 0.09 at single voxels (docs/experiments.md, 46th stop), and the
-# passes' psnr3d is the same as with the whole volume queried.
-REQUERY_DILATE = 2
+# After the first pass the model's volume is queried again only within this many voxels of the band
+# the last pass fitted (within two of the last volume's edges): elsewhere the fit moves it by an rms
+# of 6e-4 data units on abdomen, at most 0.09 at single voxels (docs/experiments.md, 46th stop), and
+# the passes' psnr3d is the same as with the whole volume queried.
+REQUERY_MARGIN = 1
 
 
 def correct_stage(trainer, scene, config, device) -> Optional[list]:
     """The band-correction passes of a trained surface model; returns one dict per pass
     (``Correction.to_json``), or None where the run has none."""
-    from ..correction import band_correction, edge_band, requery_band
+    from ..correction import band_correction, grow, requery_band
     from .evaluate import sample_volume
 
     t = config.trainer
@@ -45,12 +45,12 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=device)
     passes: list[dict] = []
     discretisation = None
-    volume = None
+    volume = fitted = None
     for k in range(int(t.correction_passes)):
         if volume is None:
             volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
         else:  # the last fit moved the field in its band: query there again (about a third of the voxels or less)
-            volume = requery_band(model, scene.geometry, volume, edge_band(volume, dilate=REQUERY_DILATE))
+            volume = requery_band(model, scene.geometry, volume, grow(fitted, REQUERY_MARGIN))
         with torch.no_grad():
             result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,
                                      iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
@@ -61,6 +61,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
         if result.iterations == 0:
             break
         target = (volume + result.grid).clamp_min(0).cpu().numpy()
+        fitted = result.band
         trainer.fit_to_volume(target, result.band.cpu().numpy(), int(t.correction_steps), int(t.correction_points),
                               float(t.correction_lr), curvature=float(t.correction_curvature))
         say(f"correction {k + 1}: {result.iterations} iterations, residual {result.residuals[0]:.3g} -> {result.residuals[-1]:.3g} "
