@@ -68,7 +68,7 @@ class TrainerConfig:
             automatic bounds (SPEC §4); paper 1000.
         lr: Adam learning rate (paper 1e-3; None = the preset's).
         lr_decay_at: fraction of epochs after which the rate is multiplied by
-            ``lr_decay_factor`` (0.5 -> after 500 of 1000 epochs; factor 0.1).
+            ``lr_decay_factor`` (paper 0.5 -> after 500 of 1000 epochs; factor 0.1; None = the preset's).
         eval_every / checkpoint_every: epochs between held-out evaluations /
             checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
@@ -142,7 +142,7 @@ class TrainerConfig:
     epochs: Optional[int] = None
     prior_epochs: Optional[int] = None
     lr: Optional[float] = None
-    lr_decay_at: float = 0.5
+    lr_decay_at: Optional[float] = None
     lr_decay_factor: float = 0.1
     eval_every: Optional[int] = None
     checkpoint_every: Optional[int] = None

@@ -35,7 +35,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 320, "num_eval_samples": 128, "eikonal_fraction": 1.0, "s_init": 20.0, "lambda_eikonal": 0.01,
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
-        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
+        "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "lr_decay_at": 0.5, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
                     "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
@@ -74,7 +74,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
                   "occupancy_grid": True, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
+        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "lr_decay_at": 0.85, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
                     "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 12},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "peaks", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },
@@ -83,7 +83,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "model": {"num_samples": 16, "num_eval_samples": 16, "eikonal_fraction": 1.0, "s_init": 20.0, "lambda_eikonal": 0.01,
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
-        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
+        "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "lr_decay_at": 0.5, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
                     "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
@@ -188,6 +188,10 @@ def resolve(config: RunConfig) -> RunConfig:
     elif trainer.anchor_edge_contrast and not trainer.warm_start_anchor:
         raise ConfigError("trainer.anchor_edge_contrast weighs the warm-start volume's voxels inside the anchor, but there is no anchor "
                           "(warm_start_anchor 0); give --trainer.warm-start-anchor 0.01 or leave --trainer.anchor-edge-contrast out")
+    decay = trainer.lr_decay_at
+    if not (isinstance(decay, (int, float)) and not isinstance(decay, bool) and 0 <= decay <= 1):
+        raise ConfigError(f"trainer.lr_decay_at is the fraction of the steps after which the rate drops, a number from 0 to 1; "
+                          f"got {decay!r}")
     for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points"):
         value = getattr(trainer, setting)
         if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
@@ -276,6 +280,9 @@ def procedure_notes(config: TrainConfig) -> list[str]:
                      + (f", each voxel's value held less where the volume is steep (--trainer.anchor-edge-contrast "
                         f"{config.trainer.anchor_edge_contrast:g}; 0 holds every voxel alike)" if config.trainer.anchor_edge_contrast else "")
                      + "; not in the paper; --trainer.warm-start-anchor 0 turns it off)")
+    if config.trainer.lr_decay_at != 0.5:
+        notes.append(f"learning rate: x{config.trainer.lr_decay_factor:g} after {config.trainer.lr_decay_at:.0%} of the steps, not after half "
+                     "of them (--trainer.lr-decay-at 0.5 for the paper's)")
     if config.trainer.eval_projections == "volume":
         notes.append("evaluation: 2D metrics on the held-out views projected from the volume at the voxel centres (Joseph projector, "
                      "as for the classical methods), not rendered through the field (--trainer.eval-projections rendered for the paper's)")

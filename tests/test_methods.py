@@ -111,6 +111,21 @@ def test_cpu_preset_scores_projections_of_the_volume_unless_told_not_to():
         presets.resolve(dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, eval_projections="exact")))
 
 
+def test_cpu_preset_drops_the_rate_late_unless_told_otherwise():
+    c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    cpu = presets.resolve(c)
+    assert cpu.trainer.lr_decay_at == 0.85
+    assert any("after 85% of the steps" in note for note in presets.procedure_notes(cpu))
+    paper = presets.resolve(dataclasses.replace(c, preset="paper"))
+    assert paper.trainer.lr_decay_at == 0.5  # SPEC: x0.1 after 500 of 1000 epochs
+    assert not any("learning rate" in note for note in presets.procedure_notes(paper))
+    told = dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, lr_decay_at=0.5))
+    assert presets.resolve(told).trainer.lr_decay_at == 0.5  # the user's choice wins
+    for bad in (1.5, -0.1, "late", True):
+        with pytest.raises(ConfigError, match="lr_decay_at"):
+            presets.resolve(dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, lr_decay_at=bad)))
+
+
 def test_cpu_preset_picks_k_by_histogram_peaks_unless_told_otherwise():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cpu = presets.resolve(c)

@@ -184,3 +184,24 @@ def test_scan_without_ground_truth_or_held_out_views(method, tmp_path, capsys):
     assert m["n_views"] == 1 and m["views"] == 9 and math.isfinite(m["psnr2d"]) and "psnr3d" not in m
     assert any("no ground-truth volume" in n for n in m["notes"]) and any("held out of training" in n for n in m["notes"])
     assert "note: the scene has no held-out views" in out
+
+
+def test_learning_rate_drops_after_the_given_fraction_of_the_steps(tiny_scene, tmp_path):
+    import dataclasses
+
+    from kneas_method import presets, registry
+    from kneas_method.data.naf import load_naf
+    from kneas_method.engine.trainer import Trainer
+
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "neas-1m").config, method="neas-1m", preset="tiny"))
+    cfg = dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, epochs=4, eval_every=0, checkpoint_every=0,
+                                                               lr=1e-3, lr_decay_at=0.75, lr_decay_factor=0.1))
+    scene = load_naf(tiny_scene)
+    trainer = Trainer(cfg, scene, tmp_path, epochs=4, device="cpu", label="model")
+    rates = []
+    trainer.train(on_step=lambda step: rates.append(trainer.optimizer.param_groups[0]["lr"]))
+    n = trainer.total_steps
+    drop = round(0.75 * n)
+    assert len(rates) == n and 0 < drop < n
+    # the rate after step k is the one step k + 1 uses: 1e-3 for the first 75 % of the steps, 1e-4 after
+    assert rates[:drop - 1] == pytest.approx([1e-3] * (drop - 1)) and rates[drop - 1:] == pytest.approx([1e-4] * (n - drop + 1))
