@@ -264,7 +264,7 @@ def test_presets_fill_and_check_the_options():
     paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
     assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("asd-pocs", "asd-pocs") and cpu.trainer.warm_start_steps > 0
     assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
-    assert len(presets.procedure_notes(cpu)) == 6 and presets.procedure_notes(paper) == []
+    assert len(presets.procedure_notes(cpu)) == 7 and presets.procedure_notes(paper) == []
     assert (cpu.model.quadrature, paper.model.quadrature) == ("bins", "bins")
     assert (cpu.trainer.warm_start_anchor, paper.trainer.warm_start_anchor) == (0.01, 0.0)
     cpu_cfg = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
