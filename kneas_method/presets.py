@@ -190,8 +190,8 @@ def resolve(config: RunConfig) -> RunConfig:
                           "(warm_start_anchor 0); give --trainer.warm-start-anchor 0.01 or leave --trainer.anchor-edge-contrast out")
     decay = trainer.lr_decay_at
     if not (isinstance(decay, (int, float)) and not isinstance(decay, bool) and 0 <= decay <= 1):
-        raise ConfigError(f"trainer.lr_decay_at is the fraction of the steps after which the rate drops, a number from 0 to 1; "
-                          f"got {decay!r}")
+        raise ConfigError(f"trainer.lr_decay_at must be the fraction of the steps after which the rate drops, got {decay!r}; "
+                          "give --trainer.lr-decay-at a number from 0 to 1 (0.5: the paper's)")
     for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points"):
         value = getattr(trainer, setting)
         if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
