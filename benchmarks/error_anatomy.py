@@ -17,6 +17,10 @@ volume:
   its classical start's error ``v_start - gt``: how much of what the run gets wrong is what its start
   got wrong (a share near 1 with a coefficient below 1: the run shrinks its start's error but keeps
   its pattern);
+- ``edge_pairs``: the edge voxels split by the two labels their 3x3x3 neighbourhood spans (lowest
+  and highest, material names), each pair's share of the squared error, its rms and its mean error
+  (bias), the largest first: which interfaces hold the error (abdomen: the one-voxel cortical
+  shell's);
 - for an SDF run, ``edge_sigma_voxels``: the standard deviation of the run's learned occupancy
   profile ``sigmoid(-s d)`` across a surface, ``pi / (sqrt(3) s)`` in voxels (the exact volume's
   edges, voxel means of a sharp surface, have about 0.29).
@@ -44,6 +48,31 @@ def edge_mask(labels: np.ndarray) -> np.ndarray:
     return ndimage.maximum_filter(labels, size=3) != ndimage.minimum_filter(labels, size=3)
 
 
+def edge_pairs(error: np.ndarray, labels: np.ndarray, names: tuple[str, ...] = (), top: int = 6) -> list[dict]:
+    """The edge voxels of ``labels [nx, ny, nz]`` (0 = air, ``k`` = ``names[k - 1]``) grouped by the
+    lowest and highest label of their 3x3x3 neighbourhood: ``[{"pair", "voxels", "error_share",
+    "rms", "bias"}]`` for the ``top`` pairs by squared ``error [nx, ny, nz]`` (``volume - gt``),
+    largest first; ``error_share`` is of the whole volume's squared error."""
+    from scipy import ndimage
+
+    labels = np.asarray(labels)
+    low, high = ndimage.minimum_filter(labels, size=3), ndimage.maximum_filter(labels, size=3)
+    edges = low != high
+    e = np.asarray(error, dtype=np.float64)
+    total = max(float(np.sum(e * e)), 1e-30)
+    key = low[edges].astype(np.int64) * (int(labels.max()) + 1) + high[edges]
+    err = e[edges]
+    name = lambda k: "air" if k == 0 else (names[k - 1] if k - 1 < len(names) else f"label {k}")
+    rows = []
+    for k in np.unique(key):
+        m = key == k
+        a, b = divmod(int(k), int(labels.max()) + 1)
+        sq = float(np.sum(err[m] ** 2))
+        rows.append({"pair": f"{name(a)} | {name(b)}", "voxels": int(m.sum()), "error_share": round(sq / total, 3),
+                     "rms": round(math.sqrt(sq / int(m.sum())), 4), "bias": round(float(err[m].mean()), 4)})
+    return sorted(rows, key=lambda r: -r["error_share"])[:top]
+
+
 def blur_directions(gt: np.ndarray) -> dict[float, np.ndarray]:
     """``{sigma: G_sigma * gt - gt}`` for each sigma of :data:`SIGMAS` (float64, voxels): what a
     Gaussian blur of the exact volume changes. Computed once per scene."""
@@ -61,7 +90,7 @@ def fit_along(error: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
 
 
 def anatomy(volume: np.ndarray, gt: np.ndarray, edges: np.ndarray, blurs: dict[float, np.ndarray],
-            start: np.ndarray | None = None) -> dict:
+            start: np.ndarray | None = None, labels: np.ndarray | None = None, names: tuple[str, ...] = ()) -> dict:
     from kneas_method.evaluation.metrics import psnr3d
 
     e = np.asarray(volume, dtype=np.float64) - np.asarray(gt, dtype=np.float64)
@@ -74,6 +103,8 @@ def anatomy(volume: np.ndarray, gt: np.ndarray, edges: np.ndarray, blurs: dict[f
     if start is not None:
         a, share = fit_along(e, np.asarray(start, dtype=np.float64) - np.asarray(gt, dtype=np.float64))
         row["start_error_share"], row["start_error_coefficient"] = round(share, 3), round(a, 3)
+    if labels is not None:
+        row["edge_pairs"] = edge_pairs(e, labels, names)
     return row
 
 
@@ -92,7 +123,7 @@ def run_anatomy(run_dir: Path) -> dict:
     starts = {path.name[: -len("_volume.npy")]: np.load(path) for path in sorted(run_dir.glob("*_volume.npy"))}
     start = next(iter(starts.values())) if len(starts) == 1 else None
     row = {"run": str(run_dir), "scene": scene.name, "method": loaded.config.method,
-           "model": anatomy(volume, gt, edges, blurs, start)}
+           "model": anatomy(volume, gt, edges, blurs, start, scene.labels, tuple(scene.materials))}
     boundary = getattr(loaded.model, "boundary", None)
     if boundary is not None:
         s = float(boundary.s.detach())
@@ -100,7 +131,7 @@ def run_anatomy(run_dir: Path) -> dict:
         row["model"]["sharpness_s"] = round(s, 1)
         row["model"]["edge_sigma_voxels"] = round(math.pi / (math.sqrt(3.0) * s * voxel), 2)
     for name, other in starts.items():
-        row[name] = anatomy(other, gt, edges, blurs)
+        row[name] = anatomy(other, gt, edges, blurs, labels=scene.labels, names=tuple(scene.materials))
     return row
 
 
