@@ -41,11 +41,17 @@ from run_rows import run_rows
 SIGMAS = (0.35, 0.5, 0.75, 1.0)
 
 
-def edge_mask(labels: np.ndarray) -> np.ndarray:
-    """``labels [nx, ny, nz]`` -> bool mask of the voxels with another label within their 3x3x3 neighbourhood."""
+def neighbourhood_range(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``labels [nx, ny, nz]`` -> (lowest, highest) label in each voxel's 3x3x3 neighbourhood."""
     from scipy import ndimage
 
-    return ndimage.maximum_filter(labels, size=3) != ndimage.minimum_filter(labels, size=3)
+    return ndimage.minimum_filter(labels, size=3), ndimage.maximum_filter(labels, size=3)
+
+
+def edge_mask(labels: np.ndarray) -> np.ndarray:
+    """``labels [nx, ny, nz]`` -> bool mask of the voxels with another label within their 3x3x3 neighbourhood."""
+    low, high = neighbourhood_range(labels)
+    return low != high
 
 
 def edge_pairs(error: np.ndarray, labels: np.ndarray, names: tuple[str, ...] = (), top: int = 6) -> list[dict]:
@@ -53,10 +59,8 @@ def edge_pairs(error: np.ndarray, labels: np.ndarray, names: tuple[str, ...] = (
     lowest and highest label of their 3x3x3 neighbourhood: ``[{"pair", "voxels", "error_share",
     "rms", "bias"}]`` for the ``top`` pairs by squared ``error [nx, ny, nz]`` (``volume - gt``),
     largest first; ``error_share`` is of the whole volume's squared error."""
-    from scipy import ndimage
-
     labels = np.asarray(labels)
-    low, high = ndimage.minimum_filter(labels, size=3), ndimage.maximum_filter(labels, size=3)
+    low, high = neighbourhood_range(labels)
     edges = low != high
     e = np.asarray(error, dtype=np.float64)
     total = max(float(np.sum(e * e)), 1e-30)
