@@ -1,6 +1,9 @@
 #!/bin/bash
 # The CUDA checks and timings of docs/experiments.md "The CUDA path": run from the repository root on a
-# machine with a CUDA GPU, the package installed (pip install -e .[dev]). Writes logs to ${OUT:-gpu_check}/.
+# machine with a CUDA GPU, the package installed (pip install -e .[dev]; on a machine that reaches no
+# registry but has torch, scikit-learn, scikit-image and rich: carry the wheels of tyro, docstring-parser,
+# shtab and typeguard, install them, then pip install --no-deps --no-build-isolation -e .).
+# Writes logs to ${OUT:-gpu_check}/.
 # CUDA against CPU (tests/test_cuda.py), the cpu preset on the four built-in scenes on the GPU,
 # foot with four times the epochs, and the paper preset's step rate (100 + 100 steps).
 out=${OUT:-gpu_check}; mkdir -p "$out"
