@@ -40,11 +40,13 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
-    # (finest resolution ~168 for the built-in 128^3 volumes), 256 + 64 rays x 64
+    # (finest resolution ~168 for the built-in 128^3 volumes), 128 + 32 rays x 64
     # samples, the exact eikonal on every sample with lambda 1e-5 (the paper's 0.01
     # dominates the ~1e-5 intensity loss of NAF-convention data in a short run), s
     # starting at 100, 64 evenly spaced evaluation samples in 256-ray chunks, a
-    # 40-epoch model (2000 steps on 50 views). Bounds from the ASD-POCS reconstruction,
+    # 80-epoch model (4000 steps on 50 views; 2000 steps of 256 + 64 rays until the 52nd
+    # stop: the same rays in twice the steps gave abdomen +0.61 dB, the other six scenes +0.00 to
+    # +0.06, training ~1.2x as long; docs/experiments.md). Bounds from the ASD-POCS reconstruction,
     # and a 300-step warm start fitting the model to it (options beside the paper's
     # procedure; see docs/experiments.md for what each lever measured on foot:
     # 22.0 dB with the paper's procedure -> 33.9 dB from FDK, 34.2 from SART, 34.7 from ASD-POCS),
@@ -73,8 +75,8 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
         "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
                   "occupancy_grid": True, "quadrature": "bins"},
-        "datamanager": {"num_object_rays": 256, "num_air_rays": 64},
-        "trainer": {"epochs": 40, "prior_epochs": 20, "lr": 1e-3, "lr_decay_at": 0.85, "eval_every": 8, "checkpoint_every": 2, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
+        "datamanager": {"num_object_rays": 128, "num_air_rays": 32},
+        "trainer": {"epochs": 80, "prior_epochs": 40, "lr": 1e-3, "lr_decay_at": 0.85, "eval_every": 16, "checkpoint_every": 4, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
                     "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 12},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "peaks", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },

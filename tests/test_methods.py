@@ -215,3 +215,13 @@ def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
     assert 0.3 < result.betas[1] < 0.8 and result.details["gmm"]["peaks"] == pytest.approx([0.3, 0.8], abs=0.004)
     assert result.details["first_label_threshold"] == pytest.approx(0.15, abs=0.002)  # half material 1's level
     assert (tmp_path / "figures" / "gmm_bounds.png").is_file()
+
+
+@pytest.mark.parametrize("name", ["paper", "cpu", "tiny"])
+def test_preset_validation_and_checkpoints_fall_on_the_last_epoch(name):
+    """Each preset's validation and checkpoint intervals divide its epochs, so the last epoch is
+    validated and checkpointed whatever the schedule (the cpu preset's steps were doubled once,
+    and its intervals with them)."""
+    t = presets.TABLE[name]["trainer"]
+    assert t["epochs"] % t["eval_every"] == 0 and t["epochs"] % t["checkpoint_every"] == 0
+    assert t["prior_epochs"] % t["checkpoint_every"] == 0

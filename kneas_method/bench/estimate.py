@@ -27,8 +27,8 @@ tiny`` cells (``train_time_s / steps`` = 0.038 s per step, evaluation and start-
 ~60 s per run, at load ~10); ``cpu`` and ``paper`` from timing single k-neas
 (K = 2) training steps (forward, eikonal, backward, Adam) on the built-in foot
 scene at load ~3.5: paper 13 s (10.6-15.8 s); ``cpu`` from a quiet
-``kneas-train k-neas --scene foot`` (6.3 steps/s; FDK + warm start +
-evaluation + start-up ~2.7 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
+``kneas-train k-neas --scene foot`` (6.3 steps/s at 256 + 64 rays; 0.6 of that
+step's cost at today's 128 + 32; FDK + warm start + evaluation + start-up ~2.7 min). The paper preset's per-run overhead is a guess. No GPU was available: GPU rows are ``None`` and
 the estimate says so; a first completed cell then calibrates rule 1. Classical
 references (CPU, built-in foot, 50 views, 2 cores, quiet; ``python benchmarks/classical.py
 --scenes foot,jaw,chest,abdomen --dice``): fdk 0.9 s, sart 6.4 s (5 iterations), os-sart
@@ -51,7 +51,7 @@ DEFAULT_VIEWS = 50
 # seconds per training step, by (preset, device kind). None = not measured.
 SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
     ("tiny", "cpu"): 0.04,
-    ("cpu", "cpu"): 0.16,
+    ("cpu", "cpu"): 0.10,  # 0.16 at the 256 + 64 rays of the 51st stop's preset; a step of 128 + 32 costs ~0.6 of one
     ("paper", "cpu"): 13.0,
     ("tiny", "gpu"): None,
     ("cpu", "gpu"): None,
