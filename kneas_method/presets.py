@@ -46,7 +46,8 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # starting at 100, 64 evenly spaced evaluation samples in 256-ray chunks, a
     # 80-epoch model (4000 steps on 50 views; 2000 steps of 256 + 64 rays until the 52nd
     # stop: the same rays in twice the steps gave abdomen +0.61 dB, the other six scenes +0.00 to
-    # +0.06, training ~1.2x as long; docs/experiments.md). Bounds from the ASD-POCS reconstruction,
+    # +0.06, training 1.26x as long; the prior, an option here, keeps its rays: 40 epochs;
+    # docs/experiments.md). Bounds from the ASD-POCS reconstruction,
     # and a 300-step warm start fitting the model to it (options beside the paper's
     # procedure; see docs/experiments.md for what each lever measured on foot:
     # 22.0 dB with the paper's procedure -> 33.9 dB from FDK, 34.2 from SART, 34.7 from ASD-POCS),
