@@ -55,6 +55,7 @@ BoundsKRule = Literal["bic", "bic-valleys", "peaks"]
 BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
+AnchorRegion = Literal["box", "hull"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
 
@@ -95,6 +96,12 @@ class TrainerConfig:
             field instead of the step noise; the projections still decide where they disagree.
             0 = off; None = the preset's (paper 0; cpu 0.01). Needs ``warm_start``.
         anchor_points: voxel centres per step of that prior.
+        anchor_region: where those centres are drawn: ``box``, every voxel of the volume box;
+            ``hull``, only the voxels the model's occupancy grid keeps (the visual hull), with the
+            weight times their share of the box, so that the loss is the box's in expectation
+            (outside the grid ``mu`` is 0 whatever the field, and a draw there moves nothing
+            the volume shows) and every draw lands where the field can hold material. Without
+            an occupancy grid both are the box.
         anchor_occupancy: weight, inside the anchor, of the warm start's per-material occupancy
             cross-entropy (``CTModel.occupancy_loss``): the prior keeps the labels the volume's
             values give under the bounds, not only its values. Where two materials' ranges meet
@@ -155,6 +162,7 @@ class TrainerConfig:
     warm_start_occupancy: float = 0.01
     warm_start_anchor: Optional[float] = None
     anchor_points: int = 4096
+    anchor_region: AnchorRegion = "box"
     anchor_occupancy: Optional[float] = None
     anchor_edge_contrast: Optional[float] = None
     correction_passes: Optional[int] = None

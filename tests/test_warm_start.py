@@ -101,6 +101,36 @@ def test_anchor_edge_contrast_weighs_each_voxel_by_its_trust(small_scene, tmp_pa
     assert trainer.anchor.value_weights is None
 
 
+def test_anchor_in_the_hull_draws_only_there_with_the_box_loss_in_expectation(small_scene, tmp_path):
+    from kneas_method.occupancy import box_of
+
+    scene = load_naf(small_scene)
+    cfg = _tiny_config()
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=8))
+    trainer = Trainer(cfg, scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    occ = torch.zeros(8, 8, 8, dtype=torch.bool)
+    occ[2:6, 1:7, 3:8] = True
+    trainer.model.set_occupancy(occ, *box_of(scene.geometry))
+    centres = scene.geometry.voxel_centres().reshape(-1, 3)
+    inside = trainer.model.occupied(centres) > 0
+    target = np.asarray(scene.image, dtype=np.float32).reshape(-1) * inside.numpy()  # 0 where mu is 0 whatever the field
+    target = target.reshape(scene.image.shape)
+    trainer.set_anchor(target, weight=0.5, points_per_step=300, region="hull")
+    hull = trainer.anchor
+    share = float(inside.float().mean())
+    assert 0.1 < share < 0.9 and len(hull.points) == int(inside.sum())
+    assert bool((trainer.model.occupied(hull.points) > 0).all())  # every draw lands in the hull
+    assert hull.weight == pytest.approx(0.5 * share)
+    with torch.no_grad():  # the whole-set losses: the hull's (weight x share) equals the box's
+        in_hull = hull.weight * torch.mean((trainer.model.query(hull.points)["mu"] - hull.targets) ** 2)
+        trainer.set_anchor(target, weight=0.5, points_per_step=300)
+        box = trainer.anchor
+        in_box = box.weight * torch.mean((trainer.model.query(box.points)["mu"] - box.targets) ** 2)
+    assert len(box.points) == target.size and float(in_hull) == pytest.approx(float(in_box), rel=1e-5)
+    with pytest.raises(KneasError, match="box or hull"):
+        trainer.set_anchor(target, weight=0.5, points_per_step=300, region="everywhere")
+
+
 def test_gradient_magnitude_is_the_slope_per_voxel():
     x, y, z = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")
     ramp = 0.03 * x - 0.04 * z + 0.5  # slope 0.05 per voxel

@@ -60,8 +60,13 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
     if warm is not None and anchor > 0:
         occupancy = float(config.trainer.anchor_occupancy)
         edges = float(config.trainer.anchor_edge_contrast or 0.0)
-        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy, edge_contrast=edges)
+        region = str(config.trainer.anchor_region)
+        trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy, edge_contrast=edges,
+                           region=region)
         labels, hints = "", ["--trainer.warm-start-anchor 0 trains on the projections alone"]
+        a = trainer.anchor
+        where = (f" drawn in the visual hull ({len(a.points):,} voxels, weight {a.weight:.3g} for their share)"
+                 if a is not None and region == "hull" and trainer.model.occupancy is not None else "")
         if edges > 0:
             labels = f", its values held less at its sharp edges (half at a step of {edges:g} of its range per voxel)"
             hints.insert(0, "--trainer.anchor-edge-contrast 0 holds every voxel alike")
@@ -69,7 +74,7 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
             labels += f", and its labels away from its edges, weight {occupancy:g} inside it"
             hints.insert(0, "--trainer.anchor-occupancy 0 keeps its values only")
         say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, "
-            f"{config.trainer.anchor_points:,} voxel centres per step{labels} ({'; '.join(hints)})")
+            f"{config.trainer.anchor_points:,} voxel centres per step{where}{labels} ({'; '.join(hints)})")
     say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
     trainer.train()
     return trainer

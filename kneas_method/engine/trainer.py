@@ -338,13 +338,15 @@ class Trainer:
         self.model.eval()
 
     def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
-                   edge_contrast: float = 0.0) -> None:
+                   edge_contrast: float = 0.0, region: str = "box") -> None:
         """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
         prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none;
         ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models), only where
         they are trusted: :func:`~.anchor.label_interior`, away from the volume's edges;
         ``edge_contrast`` > 0 weighs each voxel's value by :func:`~.anchor.edge_trust` (less at
-        its sharp edges)."""
+        its sharp edges). ``region`` ``hull`` keeps only the voxel centres inside the model's
+        occupancy grid, the weight times their share of the voxels (the ``box``'s loss in
+        expectation; see ``TrainConfig.anchor_region``); without a grid it is the box."""
         if weight <= 0:
             self.anchor = None
             return
@@ -355,6 +357,15 @@ class Trainer:
             mask = torch.as_tensor(label_interior(np.clip(volume, 0.0, None), thresholds).reshape(-1), device=self.device)
         if edge_contrast > 0:
             values = torch.as_tensor(edge_trust(volume, edge_contrast).reshape(-1), device=self.device)
+        if region not in ("box", "hull"):
+            raise KneasError(f"the anchor's region is {region!r}; choose box or hull (--trainer.anchor-region)")
+        inside = self.model.occupied(points) if region == "hull" else None
+        if inside is not None and bool((inside > 0).any()):
+            keep = (inside > 0).nonzero()[:, 0]
+            weight = float(weight) * len(keep) / len(points)
+            points, targets = points[keep], targets[keep]
+            mask = None if mask is None else mask[keep]
+            values = None if values is None else values[keep]
         self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask, values)
 
     def anchor_loss(self) -> torch.Tensor:
