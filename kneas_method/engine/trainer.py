@@ -347,6 +347,8 @@ class Trainer:
         its sharp edges). ``region`` ``hull`` keeps only the voxel centres inside the model's
         occupancy grid, the weight times their share of the voxels (the ``box``'s loss in
         expectation; see ``TrainConfig.anchor_region``); without a grid it is the box."""
+        if region not in ("box", "hull"):
+            raise KneasError(f"the anchor's region is {region!r}; choose box or hull (--trainer.anchor-region)")
         if weight <= 0:
             self.anchor = None
             return
@@ -357,8 +359,6 @@ class Trainer:
             mask = torch.as_tensor(label_interior(np.clip(volume, 0.0, None), thresholds).reshape(-1), device=self.device)
         if edge_contrast > 0:
             values = torch.as_tensor(edge_trust(volume, edge_contrast).reshape(-1), device=self.device)
-        if region not in ("box", "hull"):
-            raise KneasError(f"the anchor's region is {region!r}; choose box or hull (--trainer.anchor-region)")
         inside = self.model.occupied(points) if region == "hull" else None
         if inside is not None and bool((inside > 0).any()):
             keep = (inside > 0).nonzero()[:, 0]
