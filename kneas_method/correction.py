@@ -9,7 +9,8 @@ to that band the views determine much of it. The correction is ``x``, from CGLS 
 - ``A`` the Joseph projector of the scene grid (``classical.projector.Projector``);
 - ``M`` the band: voxels within ``dilate`` voxels of a place where ``v``'s central-difference
   gradient exceeds ``gradient`` times ``v``'s 99.5th percentile per voxel, from ``v`` alone
-  (:func:`edge_band`; relative, so the band is the same whatever the data's units);
+  (:func:`edge_band`; relative, so the band is the same whatever the data's units); with
+  ``solve = "edges"`` only those steep voxels themselves (the band without its dilation);
 - ``r = b - d - A v``, where ``d`` is the scene grid's **discretisation error**, the part of ``b``
   that no voxel volume on this grid reproduces: ``d = A_f w - A box(w)``, ``w`` the model's
   field on a grid ``fine`` times finer (in the band: its smooth fields, signed distances and
@@ -267,7 +268,7 @@ class Correction:
 @torch.no_grad()
 def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
                     noise_factor: float = 1.5, fine: int = 3, sharpen: float = 2.0,
-                    gradient: float = 0.02, dilate: int = 1, discretisation: Optional[torch.Tensor] = None,
+                    gradient: float = 0.02, dilate: int = 1, solve: str = "band", discretisation: Optional[torch.Tensor] = None,
                     progress: Optional[Callable[[str], None]] = None) -> Correction:
     """The band correction of a surface ``model`` whose volume at the voxel centres is
     ``volume`` [nx, ny, nz], against the training ``projections`` [N, nV, nU] at ``angles`` [N].
@@ -275,6 +276,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     See the module docstring. ``discretisation``: ``d`` [N, nV, nU] of an earlier pass
     (``Correction.discretisation``), used instead of computing it again. ``fine`` is lowered (to 2
     at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels.
+    ``solve``: ``band`` solves in the band, ``edges`` only at its steep voxels (dilation 0); the
+    discretisation estimate and the returned ``band`` (where the stage fits) are the band either way.
     ``progress(message)`` is told each phase.
     """
     import time
@@ -287,7 +290,10 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     fine = max(2, min(int(fine), int((FINE_VOXELS_AT_MOST / voxels) ** (1 / 3) + 1e-9)))  # memory: a 256^3 grid gets 2x
     volume = volume.float()
     b = projections.float()
+    if solve not in ("band", "edges"):
+        raise KneasError(f"the correction solves in {solve!r}; choose band or edges (--trainer.correction-solve)")
     band = edge_band(volume, gradient, dilate)
+    unknowns = band if solve == "band" else band & edge_band(volume, gradient, 0)
     A = Projector(geometry, angles, device=volume.device)
     r = b - A.forward(volume)
     sigma2, mean_square = noise_variance(r), float((r * r).mean())
@@ -305,6 +311,7 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
                                  fine=fine, sharpen=sharpen)
     r = r - d
     sigma2 = noise_variance(r)
-    say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the band")
-    x, residuals = band_cgls(A, r, band, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
+    where = "band" if solve == "band" else f"band's steep voxels ({float(unknowns.float().mean()):.1%} of the voxels)"
+    say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the {where}")
+    x, residuals = band_cgls(A, r, unknowns, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
     return Correction(x, band, residuals, sigma2, time.perf_counter() - t0, d, reused)

@@ -18,6 +18,7 @@ from kneas_method.correction import (band_cgls, band_correction, band_fields, bo
                                      fine_geometry, interpolate_fields, noise_variance)
 from kneas_method.data.simulate import SimulationConfig
 from kneas_method.engine.evaluate import sample_volume
+from kneas_method.errors import KneasError
 from kneas_method.evaluation.metrics import psnr3d
 
 SIM = SimulationConfig(n_voxel=24, voxel_mm=6.0, n_detector=32, n_train=16, n_val=2)
@@ -152,6 +153,22 @@ def test_requery_band_queries_the_band_and_keeps_the_rest():
     assert torch.equal(requery_band(model, geometry, stale, torch.zeros_like(band)), stale)
 
 
+def test_band_correction_solved_at_the_edges_only_keeps_x_there_and_the_band_for_the_fit():
+    scene, model, v, b = _sphere_problem()
+    gt = torch.as_tensor(np.asarray(scene.image, dtype=np.float32))
+    kw = dict(iterations=3, noise_factor=0.0)
+    whole = band_correction(model, v, b, scene.geometry, scene.train.angles, **kw)
+    edges = band_correction(model, v, b, scene.geometry, scene.train.angles, solve="edges", discretisation=whole.discretisation, **kw)
+    steep = edge_band(v, dilate=0)
+    assert torch.equal(edges.band, whole.band) and int(steep.sum()) < int(whole.band.sum())  # fewer unknowns, the same fit region
+    assert float(edges.grid[~steep].abs().max()) == 0.0 and float(edges.grid[steep].abs().max()) > 0
+    assert float(whole.grid[whole.band & ~steep].abs().max()) > 0  # the default solves in the whole band
+    assert edges.residuals[-1] < edges.residuals[0]
+    assert float(((v + edges.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
+    with pytest.raises(KneasError, match="choose band or edges"):
+        band_correction(model, v, b, scene.geometry, scene.train.angles, solve="core", **kw)
+
+
 def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
     scene, model, v, b = _sphere_problem()
     g = torch.Generator().manual_seed(2)
@@ -232,6 +249,18 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
                         metrics["psnr3d"], abs_tol=1e-4)
     code, out, err = run(["--resume", str(run_dir)], capsys)
     assert code == 0, err
+
+
+def test_a_run_solves_at_the_edges_when_asked(tmp_path, capsys):
+    scene_path = sphere_scene_file(tmp_path)
+    argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
+            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "1", "--trainer.epochs", "4",
+            "--trainer.correction-noise-factor", "0", "--trainer.correction-steps", "5", "--trainer.correction-points", "256",
+            "--trainer.correction-solve", "edges"]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert "CGLS in the band's steep voxels" in out
+    assert json.loads((run_dir_of(out) / "config.json").read_text())["trainer"]["correction_solve"] == "edges"
 
 
 def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
