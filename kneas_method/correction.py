@@ -292,8 +292,9 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     b = projections.float()
     if solve not in ("band", "edges"):
         raise KneasError(f"the correction solves in {solve!r}; choose band or edges (--trainer.correction-solve)")
-    band = edge_band(volume, gradient, dilate)
-    unknowns = band if solve == "band" else band & edge_band(volume, gradient, 0)
+    steep = edge_band(volume, gradient, 0)
+    band = grow(steep, dilate)
+    unknowns = band if solve == "band" else steep
     A = Projector(geometry, angles, device=volume.device)
     r = b - A.forward(volume)
     sigma2, mean_square = noise_variance(r), float((r * r).mean())
