@@ -133,7 +133,7 @@ class TrainerConfig:
             half as many unknowns). The discretisation estimate and the fit use the band either
             way, so the fit holds the rest of it at the model's volume. Measured on seven scenes
             in docs/experiments.md (55th stop): chest +0.42, abdomen +0.17, head-256 +0.08, foot
-            -0.03, jaw -0.05 (-0.08 at a second seed) dB; so not the default.
+            -0.03, jaw -0.05 (seed 1: -0.08; chest's seed 1: +0.41) dB; so not the default.
         correction_refresh: the discretisation error is computed afresh every this many passes
             and reused in between (1 = every pass): it moves little from one pass to the next, and
             computing it (the model queried on a finer grid) is the dearest part of a pass (3: the
