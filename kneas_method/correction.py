@@ -9,8 +9,10 @@ to that band the views determine much of it. The correction is ``x``, from CGLS 
 - ``A`` the Joseph projector of the scene grid (``classical.projector.Projector``);
 - ``M`` the band: voxels within ``dilate`` voxels of a place where ``v``'s central-difference
   gradient exceeds ``gradient`` times ``v``'s 99.5th percentile per voxel, from ``v`` alone
-  (:func:`edge_band`; relative, so the band is the same whatever the data's units); with
-  ``solve = "edges"`` only those steep voxels themselves (the band without its dilation);
+  (:func:`edge_band`; relative, so the band is the same whatever the data's units), as
+  weights: 1 at the steep voxels themselves and ``ring`` on the rest of the band (its outer
+  ring), so ``x = M z`` with CGLS on ``(A M) z = r`` (column scaling: the ring's share of the
+  correction is damped; ``ring`` 1 solves in the whole band, 0 at the steep voxels only);
 - ``r = b - d - A v``, where ``d`` is the scene grid's **discretisation error**, the part of ``b``
   that no voxel volume on this grid reproduces: ``d = A_f w - A box(w)``, ``w`` the model's
   field on a grid ``fine`` times finer (in the band: its smooth fields, signed distances and
@@ -98,28 +100,31 @@ def noise_variance(residual: torch.Tensor) -> float:
     return float((MAD_TO_STD * h.abs().median()) ** 2)
 
 
-def band_cgls(A, r: torch.Tensor, band: torch.Tensor, iterations: int,
+def band_cgls(A, r: torch.Tensor, weights: torch.Tensor, iterations: int,
               stop: Optional[Callable[[torch.Tensor], bool]] = None,
               iterates: Optional[Callable[[int, torch.Tensor], None]] = None) -> tuple[torch.Tensor, list[float]]:
-    """CGLS on ``(A M) x = r`` from ``x = 0``, ``M`` the 0/1 mask ``band [nx, ny, nz]``.
+    """CGLS on ``(A M) z = r`` from ``z = 0``, returning ``x = M z``; ``M`` the diagonal of
+    ``weights [nx, ny, nz]`` (a 0/1 band mask, or weights >= 0: column scaling, so a voxel of
+    weight ``w`` moves as if its unknown were ``w`` times less free).
 
     ``A`` has ``forward(volume [nx, ny, nz]) -> [N, nV, nU]`` and its adjoint ``back``. Before
     each iteration ``stop(residual)`` may end it; after iteration ``i`` (from 1),
     ``iterates(i, x)`` sees the iterate (as the classical algorithms' ``iterates``). Returns ``(x [nx, ny, nz], mean squared residual
-    before the first iteration and after each)``; ``x`` is 0 outside the band.
+    before the first iteration and after each)``; ``x`` is 0 where the weight is 0.
     """
-    m = band.to(r.dtype)
+    m = weights.to(r.dtype)
     r = r.clone()
-    x = torch.zeros(band.shape, dtype=r.dtype, device=r.device)
+    x = torch.zeros(weights.shape, dtype=r.dtype, device=r.device)
     history = [float((r * r).mean())]
     s = A.back(r) * m
     p, g = s.clone(), float((s * s).sum())
     for _ in range(iterations):
         if g == 0.0 or (stop is not None and stop(r)):
             break
-        q = A.forward(p)
+        mp = m * p
+        q = A.forward(mp)
         a = g / float((q * q).sum())
-        x += a * p
+        x += a * mp
         r -= a * q
         history.append(float((r * r).mean()))
         if iterates is not None:
@@ -268,7 +273,7 @@ class Correction:
 @torch.no_grad()
 def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
                     noise_factor: float = 1.5, fine: int = 3, sharpen: float = 2.0,
-                    gradient: float = 0.02, dilate: int = 1, solve: str = "band", discretisation: Optional[torch.Tensor] = None,
+                    gradient: float = 0.02, dilate: int = 1, ring: float = 0.5, discretisation: Optional[torch.Tensor] = None,
                     progress: Optional[Callable[[str], None]] = None) -> Correction:
     """The band correction of a surface ``model`` whose volume at the voxel centres is
     ``volume`` [nx, ny, nz], against the training ``projections`` [N, nV, nU] at ``angles`` [N].
@@ -276,8 +281,9 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     See the module docstring. ``discretisation``: ``d`` [N, nV, nU] of an earlier pass
     (``Correction.discretisation``), used instead of computing it again. ``fine`` is lowered (to 2
     at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels.
-    ``solve``: ``band`` solves in the band, ``edges`` only at its steep voxels (dilation 0); the
-    discretisation estimate and the returned ``band`` (where the stage fits) are the band either way.
+    ``ring``: the CGLS weight of the band's voxels that are not steep themselves (from 0, the
+    steep voxels only, to 1, the whole band alike); the discretisation estimate and the returned
+    ``band`` (where the stage fits) are the whole band whatever it is.
     ``progress(message)`` is told each phase.
     """
     import time
@@ -290,11 +296,12 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     fine = max(2, min(int(fine), int((FINE_VOXELS_AT_MOST / voxels) ** (1 / 3) + 1e-9)))  # memory: a 256^3 grid gets 2x
     volume = volume.float()
     b = projections.float()
-    if solve not in ("band", "edges"):
-        raise KneasError(f"the correction solves in {solve!r}; choose band or edges (--trainer.correction-solve)")
+    if not 0.0 <= ring <= 1.0:
+        raise KneasError(f"the correction's ring weight is {ring!r}; give --trainer.correction-ring a number from 0 (the steep "
+                         "voxels only) to 1 (the whole band)")
     steep = edge_band(volume, gradient, 0)
     band = grow(steep, dilate)
-    unknowns = band if solve == "band" else steep
+    weights = steep.float() + float(ring) * (band & ~steep).float()
     A = Projector(geometry, angles, device=volume.device)
     r = b - A.forward(volume)
     sigma2, mean_square = noise_variance(r), float((r * r).mean())
@@ -312,7 +319,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
                                  fine=fine, sharpen=sharpen)
     r = r - d
     sigma2 = noise_variance(r)
-    where = "band" if solve == "band" else f"band's steep voxels ({float(unknowns.float().mean()):.1%} of the voxels)"
+    where = ("band" if ring == 1.0 else f"band's steep voxels ({float(steep.float().mean()):.1%} of the voxels)" if ring == 0.0
+             else f"band, its outer ring weighted {ring:g}")
     say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the {where}")
-    x, residuals = band_cgls(A, r, unknowns, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
+    x, residuals = band_cgls(A, r, weights, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)
     return Correction(x, band, residuals, sigma2, time.perf_counter() - t0, d, reused)

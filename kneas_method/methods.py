@@ -56,7 +56,6 @@ BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
 AnchorRegion = Literal["box", "hull"]
-CorrectionSolve = Literal["band", "edges"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
 
@@ -128,12 +127,13 @@ class TrainerConfig:
             that finds nothing above the noise ends them. 0 = off; None = the preset's (paper and
             tiny 0; cpu 12).
         correction_iterations: CGLS iterations per pass at most (cpu 3).
-        correction_solve: where a pass's CGLS solves for the correction: ``band``, the whole band
-            (the voxels within one voxel of a steep one); ``edges``, the steep voxels only (about
-            half as many unknowns). The discretisation estimate and the fit use the band either
-            way, so the fit holds the rest of it at the model's volume. Measured on seven scenes
-            in docs/experiments.md (55th stop): chest +0.42, abdomen +0.17, head-256 +0.08, foot
-            -0.03, jaw -0.05 (seed 1: -0.08; chest's seed 1: +0.41) dB; so not the default.
+        correction_ring: the weight, in each pass's CGLS, of the band's voxels that are not steep
+            themselves (its outer ring, one voxel wide): 1 solves in the whole band alike, 0 at the
+            steep voxels only (about half the unknowns); between, the ring's share of the
+            correction is damped (column scaling). The discretisation estimate and the fit use the
+            whole band whatever it is, so the fit holds the ring near the model's volume. Measured
+            in docs/experiments.md (56th stop), against 1: 0.5 chest +0.26, abdomen +0.17, foot +0.03,
+            jaw 0.00 dB; 0 chest +0.42, abdomen +0.17, foot -0.03, jaw -0.05 (55th stop).
         correction_refresh: the discretisation error is computed afresh every this many passes
             and reused in between (1 = every pass): it moves little from one pass to the next, and
             computing it (the model queried on a finer grid) is the dearest part of a pass (3: the
@@ -174,7 +174,7 @@ class TrainerConfig:
     anchor_edge_contrast: Optional[float] = None
     correction_passes: Optional[int] = None
     correction_iterations: int = 3
-    correction_solve: CorrectionSolve = "band"
+    correction_ring: float = 0.5
     correction_refresh: int = 3
     correction_noise_factor: float = 1.5
     correction_steps: int = 75

@@ -153,20 +153,49 @@ def test_requery_band_queries_the_band_and_keeps_the_rest():
     assert torch.equal(requery_band(model, geometry, stale, torch.zeros_like(band)), stale)
 
 
-def test_band_correction_solved_at_the_edges_only_keeps_x_there_and_the_band_for_the_fit():
+def test_band_cgls_with_weights_is_cgls_on_the_scaled_columns():
+    """Column scaling: x = M z with z from CGLS on (A M) z = r; checked against the normal equations
+    solved directly on a tiny problem (the oracle), and a 0/1 weight is the plain band mask."""
+    scene, model, v, b = _sphere_problem()
+    from kneas_method.classical.projector import Projector
+
+    A = Projector(scene.geometry, scene.train.angles)
+    r = b - A.forward(v)
+    band = edge_band(v)
+    steep = edge_band(v, dilate=0)
+    weights = steep.float() + 0.5 * (band & ~steep).float()
+    x, history = band_cgls(A, r, weights, 1)
+    # one CGLS step from 0 is the steepest-descent step along s = M A^T r, x = a M s
+    s = A.back(r) * weights
+    q = A.forward(weights * s)
+    expected = float((s * s).sum()) / float((q * q).sum()) * weights * s
+    assert torch.allclose(x, expected, rtol=1e-4, atol=1e-7)
+    assert float(x[~band].abs().max()) == 0.0 and history[1] < history[0]
+    ring = band & ~steep
+    plain, _ = band_cgls(A, r, band, 3)
+    damped, _ = band_cgls(A, r, weights, 3)
+    assert float(damped[ring].abs().mean()) < float(plain[ring].abs().mean())  # the ring's share is damped
+    assert torch.equal(band_cgls(A, r, band.float(), 3)[0], plain)  # weights 0/1 are the mask
+
+
+def test_band_correction_ring_weight_sets_where_it_solves_and_keeps_the_band_for_the_fit():
     scene, model, v, b = _sphere_problem()
     gt = torch.as_tensor(np.asarray(scene.image, dtype=np.float32))
     kw = dict(iterations=3, noise_factor=0.0)
-    whole = band_correction(model, v, b, scene.geometry, scene.train.angles, **kw)
-    edges = band_correction(model, v, b, scene.geometry, scene.train.angles, solve="edges", discretisation=whole.discretisation, **kw)
+    whole = band_correction(model, v, b, scene.geometry, scene.train.angles, ring=1.0, **kw)
     steep = edge_band(v, dilate=0)
-    assert torch.equal(edges.band, whole.band) and int(steep.sum()) < int(whole.band.sum())  # fewer unknowns, the same fit region
-    assert float(edges.grid[~steep].abs().max()) == 0.0 and float(edges.grid[steep].abs().max()) > 0
-    assert float(whole.grid[whole.band & ~steep].abs().max()) > 0  # the default solves in the whole band
-    assert edges.residuals[-1] < edges.residuals[0]
-    assert float(((v + edges.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
-    with pytest.raises(KneasError, match="choose band or edges"):
-        band_correction(model, v, b, scene.geometry, scene.train.angles, solve="core", **kw)
+    ring = whole.band & ~steep
+    runs = {w: band_correction(model, v, b, scene.geometry, scene.train.angles, ring=w, discretisation=whole.discretisation, **kw)
+            for w in (0.0, 0.5)}
+    assert all(torch.equal(c.band, whole.band) for c in runs.values()) and int(steep.sum()) < int(whole.band.sum())
+    assert float(runs[0.0].grid[~steep].abs().max()) == 0.0 and float(runs[0.0].grid[steep].abs().max()) > 0  # steep only
+    assert 0 < float(runs[0.5].grid[ring].abs().mean()) < float(whole.grid[ring].abs().mean())  # the ring damped, not dropped
+    for c in (whole, *runs.values()):
+        assert c.residuals[-1] < c.residuals[0]
+        assert float(((v + c.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
+    for bad in (-0.1, 1.5):
+        with pytest.raises(KneasError, match="correction-ring"):
+            band_correction(model, v, b, scene.geometry, scene.train.angles, ring=bad, **kw)
 
 
 def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
@@ -251,16 +280,22 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     assert code == 0, err
 
 
-def test_a_run_solves_at_the_edges_when_asked(tmp_path, capsys):
+def test_a_run_solves_at_the_edges_when_asked_and_reads_the_older_setting(tmp_path, capsys):
     scene_path = sphere_scene_file(tmp_path)
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
             "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "1", "--trainer.epochs", "4",
             "--trainer.correction-noise-factor", "0", "--trainer.correction-steps", "5", "--trainer.correction-points", "256",
-            "--trainer.correction-solve", "edges"]
+            "--trainer.correction-ring", "0"]
     code, out, err = run(argv, capsys)
     assert code == 0, err
     assert "CGLS in the band's steep voxels" in out
-    assert json.loads((run_dir_of(out) / "config.json").read_text())["trainer"]["correction_solve"] == "edges"
+    assert json.loads((run_dir_of(out) / "config.json").read_text())["trainer"]["correction_ring"] == 0.0
+    from kneas_method.engine.loading import config_from_dict
+
+    saved = json.loads((run_dir_of(out) / "config.json").read_text())
+    for solve, weight in (("edges", 0.0), ("band", 1.0)):  # a 55th-stop config.json: correction_solve band / edges
+        older = {**saved, "trainer": {**{k: v for k, v in saved["trainer"].items() if k != "correction_ring"}, "correction_solve": solve}}
+        assert config_from_dict(older, "config.json").trainer.correction_ring == weight
 
 
 def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
@@ -268,3 +303,5 @@ def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     assert code != 0 and "no surfaces" in err and "Traceback" not in err
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-refresh", "0", "--dry-run"], capsys)
     assert code != 0 and "correction_refresh" in err and "Traceback" not in err
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-ring", "2", "--dry-run"], capsys)
+    assert code != 0 and "correction_ring" in err and "from 0" in err and "Traceback" not in err

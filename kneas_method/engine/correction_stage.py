@@ -54,7 +54,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
         with torch.no_grad():
             result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,
                                      iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
-                                     solve=str(t.correction_solve),
+                                     ring=float(t.correction_ring),
                                      discretisation=None if k % int(t.correction_refresh) == 0 else discretisation,
                                      progress=lambda message: say(f"correction {k + 1}: {message}"))
         discretisation = result.discretisation

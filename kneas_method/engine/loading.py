@@ -69,6 +69,12 @@ def config_from_dict(data: Any, where: str):
         data.pop(key, None)
     if "fdk_filter" in data:  # older neural configs kept the FDK window at the top
         data.setdefault("reconstruction", {})["filter"] = data.pop("fdk_filter")
+    trainer = data.get("trainer")
+    if isinstance(trainer, dict) and "correction_solve" in trainer:  # the 55th stop's band / edges, now a ring weight 1 / 0
+        trainer = dict(trainer)
+        solve = trainer.pop("correction_solve")
+        trainer.setdefault("correction_ring", 0.0 if solve == "edges" else 1.0)
+        data["trainer"] = trainer
     if isinstance(data.get("model"), dict) and data["model"].get("reference") is False:
         data["model"] = {k: v for k, v in data["model"].items() if k != "reference"}
     method = data["method"]
