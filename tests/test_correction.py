@@ -267,7 +267,8 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     passes = metrics["correction"]
-    assert len(passes) == 2 and all(p["iterations"] == 3 for p in passes), passes
+    cap = json.loads((run_dir / "config.json").read_text())["trainer"]["correction_iterations"]
+    assert len(passes) == 2 and all(p["iterations"] == cap for p in passes), passes  # no noise stop: the cap
     assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --trainer.correction-refresh 3
     assert all(p["residual_mean_square"][-1] < p["residual_mean_square"][0] for p in passes)
     assert metrics["correction_time_s"] > 0 and "correction" in out.split("time per stage:")[1]
