@@ -154,8 +154,8 @@ def test_requery_band_queries_the_band_and_keeps_the_rest():
 
 
 def test_band_cgls_with_weights_is_cgls_on_the_scaled_columns():
-    """Column scaling: x = M z with z from CGLS on (A M) z = r; checked against the normal equations
-    solved directly on a tiny problem (the oracle), and a 0/1 weight is the plain band mask."""
+    """Column scaling: x = M z with z from CGLS on (A M) z = r; the first iteration checked against
+    the steepest-descent step written out (the oracle), and a 0/1 weight is the plain band mask."""
     scene, model, v, b = _sphere_problem()
     from kneas_method.classical.projector import Projector
 
@@ -290,10 +290,10 @@ def test_a_run_solves_at_the_edges_when_asked_and_reads_the_older_setting(tmp_pa
     code, out, err = run(argv, capsys)
     assert code == 0, err
     assert "CGLS in the band's steep voxels" in out
-    assert json.loads((run_dir_of(out) / "config.json").read_text())["trainer"]["correction_ring"] == 0.0
     from kneas_method.engine.loading import config_from_dict
 
     saved = json.loads((run_dir_of(out) / "config.json").read_text())
+    assert saved["trainer"]["correction_ring"] == 0.0
     for solve, weight in (("edges", 0.0), ("band", 1.0)):  # a 55th-stop config.json: correction_solve band / edges
         older = {**saved, "trainer": {**{k: v for k, v in saved["trainer"].items() if k != "correction_ring"}, "correction_solve": solve}}
         assert config_from_dict(older, "config.json").trainer.correction_ring == weight
