@@ -110,7 +110,12 @@ def test_num_materials_and_bounds_file(tiny_scene, tmp_path, capsys):
 def test_fdk_method(tiny_scene, tmp_path, capsys):
     code, out, err = run(["fdk", "--dry-run", "--scene", str(tiny_scene)], capsys)
     assert code == 0 and "parameters: 0" in out.splitlines()
-    code, out, err = run(["fdk", "--scene", str(tiny_scene), "--output-dir", str(tmp_path)], capsys)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # metrics.json records the session's thread count (it moves a neural run's figures)
+    try:
+        code, out, err = run(["fdk", "--scene", str(tiny_scene), "--output-dir", str(tmp_path)], capsys)
+    finally:
+        torch.set_num_threads(threads)
     assert code == 0, err
     run_dir = run_dir_of(out)
     assert run_dir.parent == tmp_path / "tinyfoot" / "fdk"
@@ -119,6 +124,7 @@ def test_fdk_method(tiny_scene, tmp_path, capsys):
     m = json.loads((run_dir / "metrics.json").read_text())
     for key in METRIC_KEYS:
         assert key in m, key
+    assert m["threads"] == 1
     assert m["parameters"] == 0 and m["steps"] == 0 and not list((run_dir / "checkpoints").glob("*.ckpt"))
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == "fdk"
     from kneas_method.data.naf import load_naf

@@ -11,6 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
+import torch
+
 from ..console import console, say
 from .progress import _duration, summary_table
 from .run_dir import write_json
@@ -43,7 +45,8 @@ def scene_notes(scene) -> list[str]:
 def _common(config, scene, evaluation, device) -> tuple[dict, dict]:
     headline, per_view = split_per_view(evaluation.metrics)
     out = {**headline, "method": config.method, "scene": scene.name, "views": len(scene.train)}
-    facts = {"preset": config.preset, "scene_source": scene.source, "device": str(device)}
+    # the thread count changes the order of floating-point sums, so a neural run's figures follow it as they follow the seed
+    facts = {"preset": config.preset, "scene_source": scene.source, "device": str(device), "threads": torch.get_num_threads()}
     notes = scene_notes(scene)
     if notes:
         facts["notes"] = notes
