@@ -12,7 +12,11 @@ exact eikonal on every sample, SPEC §3), ``backward``, and an Adam step with
 ``zero_grad``. Architecture: the paper's hash grid (14 levels x 2 features,
 2^19 entries, 12.2 M parameters), SDF MLP, shared attenuation body with K heads,
 soft selector (``--materials K``). ``--preset cpu`` times the cpu preset's
-smaller grid and eikonal fraction instead.
+smaller grid and eikonal fraction instead. ``--anchor-points 4096`` adds the cpu
+preset's anchor term (the field queried at that many more points per step, as
+``Trainer.anchor_loss``), which the preset's training pays at every step:
+
+    python benchmarks/step.py --preset cpu --rays 128 --samples 64 --materials 3 --anchor-points 4096
 
 Paths:
 
@@ -98,8 +102,24 @@ def batches(args, device: torch.device, n: int = 8):
     return [dm.next_train() for _ in range(n)], float(scene.geometry.scale)
 
 
-def step(model, opt, batch, generator, progress: float = 0.0) -> float:
+def anchor_term(model, anchor_points: int, generator) -> torch.Tensor:
+    """What the trainer's anchor adds to a step (``Trainer.anchor_loss``): the field queried at
+    ``anchor_points`` random points of the box, an MSE and the label cross-entropy against
+    targets (here random, the cost is the same), weight 0.01."""
+    device = next(model.parameters()).device
+    points = (torch.rand(anchor_points, 3, generator=generator) * 2 - 1).mul(0.9 * model.bound).to(device)
+    targets = (torch.rand(anchor_points, generator=generator) * 0.02).to(device)
+    q = model.query(points)
+    loss = torch.mean((q["mu"] - targets) ** 2)
+    if "distances" in q:
+        loss = loss + 0.03 * model.occupancy_loss(q["distances"], targets)
+    return 0.01 * loss
+
+
+def step(model, opt, batch, generator, progress: float = 0.0, anchor_points: int = 0) -> float:
     losses = model.loss_dict(batch, progress, generator=generator)
+    if anchor_points:
+        losses["total"] = losses["total"] + anchor_term(model, anchor_points, generator)
     opt.zero_grad(set_to_none=True)
     losses["total"].backward()
     opt.step()
@@ -135,6 +155,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tcnn", action="store_true", help="fast path: tinycudann hash grid (CUDA; needs --eikonal-mode finite-difference)")
     ap.add_argument("--compile", action="store_true", help="fast path: torch.compile the fused SDF pass (opt-in; minutes to compile)")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    ap.add_argument("--anchor-points", type=int, default=0,
+                    help="add the trainer's anchor term on this many points per step (the cpu preset's: 4096; default 0, none)")
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--seed", type=int, default=0)
@@ -163,7 +185,7 @@ def main(argv=None) -> int:
             model, opt = runs[m]
             sync(device)
             t0 = time.perf_counter()
-            step(model, opt, data[i % len(data)], gens[m])
+            step(model, opt, data[i % len(data)], gens[m], anchor_points=args.anchor_points)
             sync(device)
             if i >= args.warmup:
                 times[m].append(time.perf_counter() - t0)
@@ -176,6 +198,7 @@ def main(argv=None) -> int:
                     "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
                     "gpu": torch.cuda.get_device_name(0) if device.type == "cuda" else None,
                     "load_avg_1m": os.getloadavg()[0]},
+        "anchor_points": args.anchor_points,
         "fast_options": {"eikonal_mode": args.eikonal_mode, "eikonal_fraction": args.eikonal_fraction,
                          "optimizer": args.optimizer, "tcnn": args.tcnn, "compile": args.compile},
         "warmup": args.warmup, "repeats": args.repeats,
