@@ -131,6 +131,68 @@ def test_anchor_in_the_hull_draws_only_there_with_the_box_loss_in_expectation(sm
         trainer.set_anchor(target, weight=0.5, points_per_step=300, region="everywhere")
 
 
+
+def test_anchor_outside_skip_queries_only_the_grid_with_the_same_gradient_there(small_scene, tmp_path):
+    """``anchor_outside`` ``skip``: the field is queried only at the draws inside the occupancy
+    grid; the value term (loss and gradient) is the one a query of every draw gives, and the label
+    term is that query's without the draws outside the grid (the same mean's denominator)."""
+    from kneas_method.occupancy import box_of
+
+    scene = load_naf(small_scene)
+    cfg = _tiny_config()
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=8))
+    trainer = Trainer(cfg, scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    occ = torch.zeros(8, 8, 8, dtype=torch.bool)
+    occ[2:6, 1:7, 3:8] = True
+    trainer.model.set_occupancy(occ, *box_of(scene.geometry))
+    target = np.asarray(scene.image, dtype=np.float32) + 0.01  # nonzero outside the grid too: a constant there
+    centres = scene.geometry.voxel_centres().reshape(-1, 3)
+    inside = trainer.model.occupied(centres) > 0
+    params = [p for p in trainer.model.parameters() if p.requires_grad]
+
+    def loss_and_grads(fn):
+        trainer.model.zero_grad(set_to_none=True)
+        loss = fn()
+        grads = torch.autograd.grad(loss, params, allow_unused=True)
+        return float(loss.detach()), [torch.zeros_like(p) if g is None else g for p, g in zip(params, grads)]
+
+    for occupancy_weight in (0.0, 0.3):
+        trainer.set_anchor(target, weight=0.5, points_per_step=400, occupancy_weight=occupancy_weight, outside="skip")
+        a = trainer.anchor
+        assert torch.equal(a.outside, ~inside) and 0.1 < float(inside.float().mean()) < 0.9
+        state = trainer.generator.get_state()
+        sizes = []
+        query = trainer.model.query
+        trainer.model.query = lambda points: sizes.append(len(points)) or query(points)
+        try:
+            skip_loss, skip_grads = loss_and_grads(trainer.anchor_loss)
+        finally:
+            trainer.model.query = query
+        trainer.generator.set_state(state)
+        idx = torch.randint(0, len(centres), (400,), generator=trainer.generator)
+        assert sizes == [int(inside[idx].sum())] and 0 < sizes[0] < 400  # only the draws inside the grid
+
+        def oracle():  # every draw queried; the labels outside the grid left out of the sum, not the count
+            q = query(centres[idx])
+            loss = torch.mean((q["mu"] - a.targets[idx]) ** 2)
+            if a.label_mask is not None:
+                bce = torch.nn.functional.binary_cross_entropy_with_logits(
+                    -trainer.model.boundary.s * q["distances"],
+                    (a.targets[idx][:, None] > trainer.model.label_thresholds()[None, :]).float(), reduction="none")
+                kept = (a.label_mask[idx] & inside[idx]).float()
+                loss = loss + occupancy_weight * (bce * kept[:, None]).sum() / (a.label_mask[idx].sum() * bce.shape[-1])
+            return 0.5 * loss
+
+        want_loss, want_grads = loss_and_grads(oracle)
+        assert skip_loss == pytest.approx(want_loss, rel=1e-5)
+        for got, want in zip(skip_grads, want_grads):
+            assert torch.allclose(got, want, rtol=1e-4, atol=1e-10)
+        assert any(float(g.abs().sum()) > 0 for g in skip_grads)
+    trainer.set_anchor(target, weight=0.5, points_per_step=400)
+    assert trainer.anchor.outside is None  # set_anchor's own default queries every draw
+    with pytest.raises(KneasError, match="labels or skip"):
+        trainer.set_anchor(target, weight=0.5, points_per_step=400, outside="never")
+
 def test_gradient_magnitude_is_the_slope_per_voxel():
     x, y, z = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")
     ramp = 0.03 * x - 0.04 * z + 0.5  # slope 0.05 per voxel
@@ -442,3 +504,17 @@ def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path
     code, _, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"),
                         "--trainer.warm-start", "sirt"], capsys)
     assert code == 2 and "asd-pocs" in err and len(err.strip().splitlines()) == 1
+
+
+def test_runs_skip_the_anchors_draws_outside_the_grid_and_older_runs_keep_their_rule():
+    """The default (``skip``) since the 58th stop; a config.json written before it (no
+    ``anchor_outside``) is read with the rule it was trained with (``labels``)."""
+    from kneas_method.config import to_dict
+    from kneas_method.engine.loading import config_from_dict
+
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="cpu"))
+    assert cfg.trainer.anchor_outside == "skip" and cfg.trainer.warm_start_anchor > 0 and cfg.model.occupancy_grid
+    saved = to_dict(cfg)
+    assert config_from_dict(saved, "config.json").trainer.anchor_outside == "skip"
+    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "anchor_outside"}}
+    assert config_from_dict(older, "config.json").trainer.anchor_outside == "labels"

@@ -93,6 +93,8 @@ class Anchor:
         label_mask: ``[V]`` bool, the voxels whose labels count (:func:`label_interior`);
             ``None`` when ``occupancy_weight`` is 0.
         value_weights: ``[V]`` each voxel's weight in the MSE (:func:`edge_trust`); ``None`` = 1 everywhere.
+        outside: ``[V]`` bool, the voxels outside the model's occupancy grid, which the anchor
+            leaves out of its field query (``anchor_outside`` ``skip``); ``None`` = query every draw.
     """
 
     points: torch.Tensor
@@ -102,3 +104,4 @@ class Anchor:
     occupancy_weight: float = 0.0
     label_mask: Optional[torch.Tensor] = None
     value_weights: Optional[torch.Tensor] = None
+    outside: Optional[torch.Tensor] = None

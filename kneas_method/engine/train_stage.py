@@ -62,11 +62,15 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
         edges = float(config.trainer.anchor_edge_contrast or 0.0)
         region = str(config.trainer.anchor_region)
         trainer.set_anchor(warm.volume, anchor, int(config.trainer.anchor_points), occupancy_weight=occupancy, edge_contrast=edges,
-                           region=region)
+                           region=region, outside=str(config.trainer.anchor_outside))
         labels, hints = "", ["--trainer.warm-start-anchor 0 trains on the projections alone"]
         a = trainer.anchor
         where = (f" drawn in the visual hull ({len(a.points):,} voxels, weight {a.weight:.3g} for their share)"
                  if a is not None and region == "hull" and trainer.model.occupancy is not None else "")
+        if a is not None and a.outside is not None:
+            where = (f" (the field queried only at those inside the visual hull, {1 - float(a.outside.float().mean()):.1%} of the "
+                     "box; outside it the volume is 0 whatever the field)")
+            hints.insert(0, "--trainer.anchor-outside labels queries every draw")
         if edges > 0:
             labels = f", its values held less at its sharp edges (half at a step of {edges:g} of its range per voxel)"
             hints.insert(0, "--trainer.anchor-edge-contrast 0 holds every voxel alike")

@@ -338,7 +338,7 @@ class Trainer:
         self.model.eval()
 
     def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
-                   edge_contrast: float = 0.0, region: str = "box") -> None:
+                   edge_contrast: float = 0.0, region: str = "box", outside: str = "labels") -> None:
         """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
         prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none;
         ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models), only where
@@ -346,9 +346,13 @@ class Trainer:
         ``edge_contrast`` > 0 weighs each voxel's value by :func:`~.anchor.edge_trust` (less at
         its sharp edges). ``region`` ``hull`` keeps only the voxel centres inside the model's
         occupancy grid, the weight times their share of the voxels (the ``box``'s loss in
-        expectation; see ``TrainConfig.anchor_region``); without a grid it is the box."""
+        expectation; see ``TrainConfig.anchor_region``); without a grid it is the box. ``outside``
+        ``skip``: the box's draws outside the occupancy grid are left out of the field's query
+        (``TrainConfig.anchor_outside``)."""
         if region not in ("box", "hull"):
             raise KneasError(f"the anchor's region is {region!r}; choose box or hull (--trainer.anchor-region)")
+        if outside not in ("labels", "skip"):
+            raise KneasError(f"the anchor's outside rule is {outside!r}; choose labels or skip (--trainer.anchor-outside)")
         if weight <= 0:
             self.anchor = None
             return
@@ -359,27 +363,49 @@ class Trainer:
             mask = torch.as_tensor(label_interior(np.clip(volume, 0.0, None), thresholds).reshape(-1), device=self.device)
         if edge_contrast > 0:
             values = torch.as_tensor(edge_trust(volume, edge_contrast).reshape(-1), device=self.device)
-        inside = self.model.occupied(points) if region == "hull" else None
-        if inside is not None and bool((inside > 0).any()):
+        inside = self.model.occupied(points) if (region == "hull" or outside == "skip") else None
+        out_of_grid = None
+        if inside is not None and region == "hull" and bool((inside > 0).any()):
             keep = (inside > 0).nonzero()[:, 0]
             weight = float(weight) * len(keep) / len(points)
             points, targets = points[keep], targets[keep]
             mask = None if mask is None else mask[keep]
             values = None if values is None else values[keep]
-        self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask, values)
+        elif inside is not None and outside == "skip":
+            out_of_grid = inside <= 0
+        self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask, values,
+                             out_of_grid)
 
     def anchor_loss(self) -> torch.Tensor:
         """``weight`` x (the MSE between ``mu`` and the prior volume, each voxel times its
         ``value_weights`` where set, + ``occupancy_weight`` x the per-material occupancy
         cross-entropy on its trusted labels, ``CTModel.occupancy_loss``) at ``points_per_step``
-        voxel centres drawn with the run's loss generator (so a resumed run draws the same ones)."""
+        voxel centres drawn with the run's loss generator (so a resumed run draws the same ones).
+        With ``Anchor.outside`` the field is queried only at the draws inside the occupancy grid:
+        outside it ``mu`` is 0 whatever the field, so their squared error is the same constant
+        (kept in the value) and their label term is left out; the means keep all the draws'
+        counts, so the gradient inside the grid is the one every draw's query gives."""
         a = self.anchor
-        idx = torch.randint(0, len(a.points), (min(a.points_per_step, len(a.points)),), generator=self.generator).to(self.device)
-        q = self.model.query(a.points[idx])
-        squared = (q["mu"] - a.targets[idx]) ** 2
-        loss = torch.mean(squared if a.value_weights is None else a.value_weights[idx] * squared)
-        if a.label_mask is not None:
-            loss = loss + a.occupancy_weight * self.model.occupancy_loss(q["distances"], a.targets[idx], mask=a.label_mask[idx])
+        n = min(a.points_per_step, len(a.points))
+        idx = torch.randint(0, len(a.points), (n,), generator=self.generator).to(self.device)
+        if a.outside is None:
+            q = self.model.query(a.points[idx])
+            squared = (q["mu"] - a.targets[idx]) ** 2
+            loss = torch.mean(squared if a.value_weights is None else a.value_weights[idx] * squared)
+            if a.label_mask is not None:
+                loss = loss + a.occupancy_weight * self.model.occupancy_loss(q["distances"], a.targets[idx], mask=a.label_mask[idx])
+            return a.weight * loss
+        gone = a.outside[idx]
+        queried = idx[~gone]
+        unseen = a.targets[idx[gone]] ** 2  # (0 - target)^2 at the draws outside the grid
+        constant = (unseen if a.value_weights is None else a.value_weights[idx[gone]] * unseen).sum()
+        q = self.model.query(a.points[queried])
+        squared = (q["mu"] - a.targets[queried]) ** 2
+        squared = squared if a.value_weights is None else a.value_weights[queried] * squared
+        loss = (squared.sum() + constant) / n
+        if a.label_mask is not None:  # the mean over every draw's trusted labels, as a query of every draw gives
+            labels = self.model.occupancy_loss(q["distances"], a.targets[queried], mask=a.label_mask[queried])
+            loss = loss + a.occupancy_weight * labels * a.label_mask[queried].sum().clamp(min=1) / a.label_mask[idx].sum().clamp(min=1)
         return a.weight * loss
 
     # ----------------------------------------------------------------- loop
