@@ -101,16 +101,22 @@ def test_anchor_edge_contrast_weighs_each_voxel_by_its_trust(small_scene, tmp_pa
     assert trainer.anchor.value_weights is None
 
 
-def test_anchor_in_the_hull_draws_only_there_with_the_box_loss_in_expectation(small_scene, tmp_path):
+def _trainer_with_a_grid(scene_path, tmp_path):
+    """``(scene, trainer)``: a tiny k-neas trainer whose 8^3 occupancy grid keeps a box of the volume."""
     from kneas_method.occupancy import box_of
 
-    scene = load_naf(small_scene)
+    scene = load_naf(scene_path)
     cfg = _tiny_config()
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=8))
     trainer = Trainer(cfg, scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
     occ = torch.zeros(8, 8, 8, dtype=torch.bool)
     occ[2:6, 1:7, 3:8] = True
     trainer.model.set_occupancy(occ, *box_of(scene.geometry))
+    return scene, trainer
+
+
+def test_anchor_in_the_hull_draws_only_there_with_the_box_loss_in_expectation(small_scene, tmp_path):
+    scene, trainer = _trainer_with_a_grid(small_scene, tmp_path)
     centres = scene.geometry.voxel_centres().reshape(-1, 3)
     inside = trainer.model.occupied(centres) > 0
     target = np.asarray(scene.image, dtype=np.float32).reshape(-1) * inside.numpy()  # 0 where mu is 0 whatever the field
@@ -136,15 +142,7 @@ def test_anchor_outside_skip_queries_only_the_grid_with_the_same_gradient_there(
     """``anchor_outside`` ``skip``: the field is queried only at the draws inside the occupancy
     grid; the value term (loss and gradient) is the one a query of every draw gives, and the label
     term is that query's without the draws outside the grid (the same mean's denominator)."""
-    from kneas_method.occupancy import box_of
-
-    scene = load_naf(small_scene)
-    cfg = _tiny_config()
-    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=8))
-    trainer = Trainer(cfg, scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
-    occ = torch.zeros(8, 8, 8, dtype=torch.bool)
-    occ[2:6, 1:7, 3:8] = True
-    trainer.model.set_occupancy(occ, *box_of(scene.geometry))
+    scene, trainer = _trainer_with_a_grid(small_scene, tmp_path)
     target = np.asarray(scene.image, dtype=np.float32) + 0.01  # nonzero outside the grid too: a constant there
     centres = scene.geometry.voxel_centres().reshape(-1, 3)
     inside = trainer.model.occupied(centres) > 0
