@@ -109,8 +109,8 @@ class TrainerConfig:
             positive where the volume is empty anyway, the default before the 58th stop);
             ``skip`` (default) leaves them out and queries the field only at the draws inside the
             grid: its value term and its gradient are the same, and the anchor's cost falls by the
-            share of the box outside the grid (training 16 % faster on jaw, 32 % on abdomen; the
-            four built-in scenes within −0.06 to +0.05 dB; docs/experiments.md, 58th stop).
+            share of the box outside the grid (training 16 % shorter on jaw, about a quarter on
+            abdomen; the four built-in scenes within −0.06 to +0.05 dB; docs/experiments.md, 58th stop).
         anchor_occupancy: weight, inside the anchor, of the warm start's per-material occupancy
             cross-entropy (``CTModel.occupancy_loss``): the prior keeps the labels the volume's
             values give under the bounds, not only its values. Where two materials' ranges meet
