@@ -111,6 +111,11 @@ class TrainerConfig:
             grid: its value term and its gradient are the same, and the anchor's cost falls by the
             share of the box outside the grid (training 16 % shorter on jaw, about a quarter on
             abdomen; the four built-in scenes within −0.06 to +0.05 dB; docs/experiments.md, 58th stop).
+        fit_outside: the same rule for the other fits to a volume, the warm start and the
+            correction passes' fits (``Trainer._fit_steps``): ``skip`` (default) queries the
+            field only at their draws inside the occupancy grid, with every mean over all the
+            draws, so the value term's gradient is unchanged and the draws outside add no label,
+            eikonal or curvature term; ``labels`` queries every draw (before the 59th stop).
         anchor_occupancy: weight, inside the anchor, of the warm start's per-material occupancy
             cross-entropy (``CTModel.occupancy_loss``): the prior keeps the labels the volume's
             values give under the bounds, not only its values. Where two materials' ranges meet
@@ -181,6 +186,7 @@ class TrainerConfig:
     anchor_points: int = 4096
     anchor_region: AnchorRegion = "box"
     anchor_outside: AnchorOutside = "skip"
+    fit_outside: AnchorOutside = "skip"
     anchor_occupancy: Optional[float] = None
     anchor_edge_contrast: Optional[float] = None
     correction_passes: Optional[int] = None

@@ -403,7 +403,8 @@ class CTModel(nn.Module):
 
     # ------------------------------------------------------------------ losses
     def volume_loss_dict(self, points: torch.Tensor, targets: torch.Tensor, occupancy_weight: float = 0.0,
-                         curvature_weight: float = 0.0, steps: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
+                         curvature_weight: float = 0.0, steps: Optional[torch.Tensor] = None,
+                         queried: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
         """Loss terms for fitting the field to a known attenuation volume (the warm start).
 
         Args:
@@ -418,10 +419,25 @@ class CTModel(nn.Module):
                 (``losses.curvature.surface_smoothness``) between the distance gradients at
                 ``points`` and at ``points + steps``.
             steps: [P, 3] model units, the short steps of that term (their length is also its width).
+            queried: [P] bool, the points where the field is queried (inside the occupancy
+                grid); ``None`` = every point. The others add their squared target to the value
+                term (``mu`` is 0 there whatever the field) and nothing else, and every mean keeps
+                all P points' count: the gradient is a query of every point's with the other
+                points' label, eikonal and curvature terms left out (none queried: every point is).
 
         Returns ``volume`` (MSE of ``mu``), ``occupancy`` (when weighted), ``eikonal``
         (SDF models, already times ``lambda_eikonal``), ``curvature`` (when weighted) and ``total``.
         """
+        if queried is not None and bool(queried.any()):
+            count = len(points)
+            unseen = (targets[~queried] ** 2).sum()
+            out = self.volume_loss_dict(points[queried], targets[queried], occupancy_weight=occupancy_weight,
+                                        curvature_weight=curvature_weight, steps=None if steps is None else steps[queried])
+            share = float(queried.sum()) / count
+            out = {k: v * share for k, v in out.items() if k != "total"}
+            out["volume"] = out["volume"] + unseen / count
+            out["total"] = sum(out.values())
+            return out
         fused = self.fused_eikonal
         if fused:
             q = self._materials(self._with_gradients(points.detach()), points)

@@ -191,6 +191,85 @@ def test_anchor_outside_skip_queries_only_the_grid_with_the_same_gradient_there(
     with pytest.raises(KneasError, match="labels or skip"):
         trainer.set_anchor(target, weight=0.5, points_per_step=400, outside="never")
 
+def test_volume_fit_queried_only_in_the_grid_keeps_every_draws_mean(small_scene, tmp_path):
+    """``volume_loss_dict(queried=...)``: the field is queried only at the points inside the grid;
+    the value term (loss and gradient) is a query of every point's, and the label, eikonal and
+    curvature terms are its per-point terms summed over the queried points, over every point's count."""
+    scene, trainer = _trainer_with_a_grid(small_scene, tmp_path)
+    model = trainer.model
+    gen = torch.Generator().manual_seed(3)
+    centres = scene.geometry.voxel_centres().reshape(-1, 3)
+    idx = torch.randint(0, len(centres), (500,), generator=gen)
+    points = centres[idx]
+    targets = torch.as_tensor(np.asarray(scene.image, dtype=np.float32).reshape(-1))[idx] + 0.01
+    inside = model.occupied(points) > 0
+    assert 50 < int(inside.sum()) < 450
+    u = torch.randn(len(points), 3, generator=gen)
+    steps = float(min(scene.geometry.d_voxel)) * u / u.norm(dim=-1, keepdim=True)
+    params = [p for p in model.parameters() if p.requires_grad]
+
+    def grads_of(loss):
+        return [torch.zeros_like(p) if g is None else g for p, g in
+                zip(params, torch.autograd.grad(loss, params, allow_unused=True, retain_graph=True))]
+
+    seen = []
+    field = model.field.get_outputs
+    model.field.get_outputs = lambda x, *a, **k: seen.append(len(x)) or field(x, *a, **k)
+    try:
+        got = model.volume_loss_dict(points, targets, occupancy_weight=0.3, curvature_weight=0.2, steps=steps, queried=inside)
+    finally:
+        model.field.get_outputs = field
+    assert set(seen) == {int(inside.sum())}  # the field (autograd eikonal) sees only the points inside the grid
+
+    # the oracle: every point queried, each term's per-point values masked, every mean over all points
+    q = model.query(points.detach().requires_grad_(True))
+    keep = inside.float()[:, None]
+    width = float(steps.norm(dim=-1).mean())
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(
+        -model.boundary.s * q["distances"], (targets[:, None] > model.label_thresholds()[None, :]).float(), reduction="none")
+    grads = model.distance_gradients(points)
+    eik = (grads.norm(dim=-1) - 1) ** 2
+    w = torch.exp(-(q["distances"].detach() / width) ** 2)  # no gradient through the weights
+    curv = w * ((grads - model.distance_gradients(points + steps)) ** 2).sum(-1)
+    count = len(points) * bce.shape[-1]
+    want = {"volume": torch.mean((q["mu"] - targets) ** 2), "occupancy": 0.3 * (bce * keep).sum() / count,
+            "eikonal": model.lambda_eikonal * (eik * keep).sum() / count, "curvature": 0.2 * (curv * keep).sum() / count}
+    assert set(got) == set(want) | {"total"}
+    for key in want:
+        assert float(got[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-4), key
+        pairs = list(zip(grads_of(got[key]), grads_of(want[key])))
+        scale = max(float(h.abs().max()) for _, h in pairs)
+        assert scale > 0 and all(float((g - h).abs().max()) <= 5e-3 * scale for g, h in pairs), key  # float32 double backward
+    assert float(want["curvature"].detach()) > 0 and float(want["eikonal"].detach()) > 0
+
+
+def test_fits_to_a_volume_query_only_the_grid_unless_told(small_scene, tmp_path, monkeypatch):
+    """``fit_outside`` ``skip`` (default): the warm start and the correction fits pass the occupancy
+    grid's draws as ``queried``; ``labels`` queries every draw."""
+    scene, trainer = _trainer_with_a_grid(small_scene, tmp_path)
+    assert trainer.config.trainer.fit_outside == "skip"
+    target = np.asarray(scene.image, dtype=np.float32)
+    calls = []
+    loss = trainer.model.volume_loss_dict
+    def record(points, targets, **kw):  # the fits' calls (the skip's own inner call passes no ``queried``)
+        if "queried" in kw:
+            calls.append((points, kw["queried"]))
+        return loss(points, targets, **kw)
+
+    monkeypatch.setattr(trainer.model, "volume_loss_dict", record)
+    trainer.warm_start(target, steps=3, points_per_step=300, what="test")
+    mask = np.zeros(target.shape, dtype=bool)
+    mask[4:-4, 4:-4, 4:-4] = True
+    trainer.fit_to_volume(target, mask, steps=2, points_per_step=200, lr=1e-4, curvature=0.1)
+    assert len(calls) == 5
+    for points, queried in calls:
+        assert torch.equal(queried, trainer.model.occupied(points) > 0) and 0 < int(queried.sum()) < len(points)
+    trainer.config = dataclasses.replace(trainer.config, trainer=dataclasses.replace(trainer.config.trainer, fit_outside="labels"))
+    calls.clear()
+    trainer.fit_to_volume(target, mask, steps=1, points_per_step=200, lr=1e-4)
+    assert len(calls) == 1 and calls[0][1] is None
+
+
 def test_gradient_magnitude_is_the_slope_per_voxel():
     x, y, z = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")
     ramp = 0.03 * x - 0.04 * z + 0.5  # slope 0.05 per voxel
@@ -504,9 +583,10 @@ def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path
     assert code == 2 and "asd-pocs" in err and len(err.strip().splitlines()) == 1
 
 
-def test_runs_skip_the_anchors_draws_outside_the_grid_and_older_runs_keep_their_rule():
-    """The default (``skip``) since the 58th stop; a config.json written before it (no
-    ``anchor_outside``) is read with the rule it was trained with (``labels``)."""
+def test_runs_skip_the_fits_draws_outside_the_grid_and_older_runs_keep_their_rule():
+    """The default (``skip``) for the anchor since the 58th stop and for the warm start and the
+    correction fits since the 59th; a config.json written before either (without the key) is
+    read with the rule it was trained with (``labels``)."""
     from kneas_method.config import to_dict
     from kneas_method.engine.loading import config_from_dict
 
@@ -516,3 +596,7 @@ def test_runs_skip_the_anchors_draws_outside_the_grid_and_older_runs_keep_their_
     assert config_from_dict(saved, "config.json").trainer.anchor_outside == "skip"
     older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "anchor_outside"}}
     assert config_from_dict(older, "config.json").trainer.anchor_outside == "labels"
+    assert cfg.trainer.fit_outside == "skip" and config_from_dict(saved, "config.json").trainer.fit_outside == "skip"
+    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "fit_outside"}}
+    read = config_from_dict(older, "config.json").trainer
+    assert read.fit_outside == "labels" and read.anchor_outside == "skip"

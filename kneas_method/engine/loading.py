@@ -79,6 +79,10 @@ def config_from_dict(data: Any, where: str):
     if isinstance(trainer, dict) and "warm_start_anchor" in trainer and "anchor_outside" not in trainer:
         # written before the 58th stop, whose anchor queried every draw: keep what the run was trained with
         data["trainer"] = dict(trainer, anchor_outside="labels")
+    trainer = data.get("trainer")
+    if isinstance(trainer, dict) and "warm_start_steps" in trainer and "fit_outside" not in trainer:
+        # written before the 59th stop, whose warm start and correction fits queried every draw
+        data["trainer"] = dict(trainer, fit_outside="labels")
     if isinstance(data.get("model"), dict) and data["model"].get("reference") is False:
         data["model"] = {k: v for k, v in data["model"].items() if k != "reference"}
     method = data["method"]

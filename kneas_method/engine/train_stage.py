@@ -51,8 +51,11 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
     elif warm is not None and int(config.trainer.warm_start_steps or 0) > 0:
         steps = int(config.trainer.warm_start_steps)
         what = warm.what.upper()
+        where = ("; the field queried only at those inside the visual hull, --trainer.fit-outside labels queries every one"
+                 if str(config.trainer.fit_outside) == "skip" and trainer.model.occupancy is not None else "")
         say(f"{label}: warm start: fitting the model to the {what} reconstruction for {steps} steps "
-            f"({config.trainer.warm_start_points:,} voxel centres each; --trainer.warm-start none trains from the initialisation, as the paper)")
+            f"({config.trainer.warm_start_points:,} voxel centres each{where}; --trainer.warm-start none trains from the "
+            "initialisation, as the paper)")
         seconds = trainer.warm_start(warm.volume, steps, int(config.trainer.warm_start_points), what=what,
                                      occupancy_weight=float(config.trainer.warm_start_occupancy))
         say(f"{label}: warm start done in {seconds:.1f} s")

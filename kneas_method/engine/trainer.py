@@ -286,7 +286,12 @@ class Trainer:
         """``steps`` Adam steps (a fresh optimiser at ``lr``) fitting ``mu`` at ``points[draw()]`` to
         ``targets`` (``CTModel.volume_loss_dict``), with a progress bar; returns the last loss values.
         ``curvature`` > 0 adds the surface-smoothness term with steps of one voxel in random
-        directions drawn with ``generator``."""
+        directions drawn with ``generator``. With ``TrainConfig.fit_outside`` ``skip`` the field is
+        queried only at the draws inside the occupancy grid (``queried`` of ``volume_loss_dict``)."""
+        queried = None
+        if str(self.config.trainer.fit_outside) == "skip":
+            inside = self.model.occupied(points)
+            queried = None if inside is None else inside > 0
         voxel = float(min(self.scene.geometry.d_voxel))
         optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.model.train()
@@ -300,7 +305,8 @@ class Trainer:
                     u = torch.randn(len(idx), 3, generator=generator).to(self.device)
                     offsets = voxel * u / u.norm(dim=-1, keepdim=True)
                 losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight,
-                                                     curvature_weight=curvature, steps=offsets)
+                                                     curvature_weight=curvature, steps=offsets,
+                                                     queried=None if queried is None else queried[idx])
                 optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(losses["total"]):
                     raise KneasError(f"non-finite loss in the {task} (step {i}); {fix}")
