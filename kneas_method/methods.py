@@ -56,7 +56,7 @@ BoundsVolume = Literal["prior", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
 AnchorRegion = Literal["box", "hull"]
-AnchorOutside = Literal["labels", "skip"]
+OutsideRule = Literal["labels", "skip"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
 
@@ -185,8 +185,8 @@ class TrainerConfig:
     warm_start_anchor: Optional[float] = None
     anchor_points: int = 4096
     anchor_region: AnchorRegion = "box"
-    anchor_outside: AnchorOutside = "skip"
-    fit_outside: AnchorOutside = "skip"
+    anchor_outside: OutsideRule = "skip"
+    fit_outside: OutsideRule = "skip"
     anchor_occupancy: Optional[float] = None
     anchor_edge_contrast: Optional[float] = None
     correction_passes: Optional[int] = None
