@@ -428,12 +428,13 @@ class CTModel(nn.Module):
         Returns ``volume`` (MSE of ``mu``), ``occupancy`` (when weighted), ``eikonal``
         (SDF models, already times ``lambda_eikonal``), ``curvature`` (when weighted) and ``total``.
         """
-        if queried is not None and bool(queried.any()):
+        kept = 0 if queried is None else int(queried.sum())
+        if kept > 0:
             count = len(points)
             unseen = (targets[~queried] ** 2).sum()
             out = self.volume_loss_dict(points[queried], targets[queried], occupancy_weight=occupancy_weight,
                                         curvature_weight=curvature_weight, steps=None if steps is None else steps[queried])
-            share = float(queried.sum()) / count
+            share = kept / count
             out = {k: v * share for k, v in out.items() if k != "total"}
             out["volume"] = out["volume"] + unseen / count
             out["total"] = sum(out.values())
