@@ -89,6 +89,34 @@ def test_presets_fill_only_unset_values(monkeypatch):
     assert presets.resolve(r) == r  # idempotent
 
 
+def test_cpu_preset_narrows_the_attenuation_networks_and_older_runs_keep_their_width():
+    """The cpu preset's attenuation networks are 32 wide (the paper's 64 elsewhere), for every
+    surface method and its prior; the user's width wins; a config.json written before (no
+    ``hidden_dim``) is read at the 64 it was trained with, so it loads and resumes."""
+    from kneas_method.engine.bounds_stage import prior_config
+    from kneas_method.engine.loading import config_from_dict
+
+    for name in ("k-neas", "neas-2m", "neas-1m"):
+        base = dataclasses.replace(registry.load("methods", name).config, method=name)
+        cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
+        assert cpu.model.attenuation_options == {"hidden_dim": 32}
+        assert presets.resolve(cpu) == cpu  # idempotent
+        assert presets.resolve(dataclasses.replace(base, preset="paper")).model.attenuation_options == {"hidden_dim": 64}
+        net = cpu.model.setup(scale=1.0).attenuation
+        first = net.body[0] if hasattr(net, "body") else (net.net[0] if hasattr(net, "net") else net.nets[0][0])
+        assert first.out_features == 32
+        saved = to_dict(cpu)
+        assert config_from_dict(saved, "config.json").model.attenuation_options == {"hidden_dim": 32}
+        older = {**saved, "model": {**saved["model"], "attenuation_options": {}}}
+        assert config_from_dict(older, "config.json").model.attenuation_options == {"hidden_dim": 64}
+    told = dataclasses.replace(base, preset="cpu", model=dataclasses.replace(base.model, attenuation_options={"hidden_dim": 48}))
+    assert presets.resolve(told).model.attenuation_options == {"hidden_dim": 48}
+    k = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="cpu"))
+    assert prior_config(k).model.attenuation_options == {"hidden_dim": 32}
+    naf = presets.resolve(dataclasses.replace(registry.load("methods", "naf").config, method="naf", preset="cpu"))
+    assert naf.model.attenuation_options == {} and config_from_dict(to_dict(naf), "config.json").model.attenuation_options == {}
+
+
 def test_cpu_preset_skips_empty_space_unless_told_not_to():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     assert presets.resolve(c).model.occupancy_grid is True

@@ -87,7 +87,7 @@ def scene_fingerprint(scene) -> str:
 
 def prior_config(config):
     """The resolved NeAS-1M prior config for a run: the method's NeAS-1M settings with
-    the run's preset-resolved encoding, samples, rays and schedule (``prior_epochs``)."""
+    the run's preset-resolved encoding, attenuation width, samples, rays and schedule (``prior_epochs``)."""
     base = registry.load("methods", PRIOR_METHOD).config.model
     model = dataclasses.replace(
         config.model,
@@ -95,6 +95,10 @@ def prior_config(config):
         selector=base.selector, selector_options=dict(base.selector_options), num_materials=1,
         floater=False, alphas=None, betas=None,
     )
+    from ..presets import TABLE, attenuation_options
+
+    preset = TABLE.get(config.preset, {}).get("attenuation", {})  # the preset's width, as the run's own network has
+    model = dataclasses.replace(model, attenuation_options=attenuation_options(model, preset))
     trainer = dataclasses.replace(config.trainer, epochs=config.trainer.prior_epochs)
     return dataclasses.replace(config, method=PRIOR_METHOD, num_materials=1, bounds=None, bounds_source="wide", resume=None,
                                model=model, trainer=trainer)

@@ -83,6 +83,13 @@ def config_from_dict(data: Any, where: str):
     if isinstance(trainer, dict) and "warm_start_steps" in trainer and "fit_outside" not in trainer:
         # written before the 59th stop, whose warm start and correction fits queried every draw
         data["trainer"] = dict(trainer, fit_outside="labels")
+    trainer, model = data.get("trainer"), data.get("model")
+    if isinstance(trainer, dict) and "warm_start_steps" in trainer and isinstance(model, dict) \
+            and isinstance(model.get("attenuation_options"), dict) and "hidden_dim" not in model["attenuation_options"] \
+            and _attenuation_has_width(data["method"], model):
+        # written before the 60th stop, whose presets left the attenuation networks at their 64-wide
+        # default: keep that width, so the run loads and resumes as it was trained
+        data["model"] = dict(model, attenuation_options=dict(model["attenuation_options"], hidden_dim=64))
     if isinstance(data.get("model"), dict) and data["model"].get("reference") is False:
         data["model"] = {k: v for k, v in data["model"].items() if k != "reference"}
     method = data["method"]
@@ -92,6 +99,24 @@ def config_from_dict(data: Any, where: str):
     base = dataclasses.replace(specs[method].config, method=method)
     data = _drop_other_kind(base, data)
     return update_from_dict(base, data, where=where)
+
+
+def _attenuation_has_width(method: str, model: dict) -> bool:
+    """True when the attenuation network a config.json's ``model`` names has a ``hidden_dim``."""
+    from .. import registry
+    from ..model import build_component, field_has_surfaces
+
+    specs = registry.methods()
+    if method not in specs:
+        return False
+    try:
+        base = specs[method].config.model
+        surfaces = field_has_surfaces(dataclasses.replace(base, field=model.get("field", base.field),
+                                                          field_options=model.get("field_options", base.field_options)))
+        name = model.get("attenuation", base.attenuation)
+        return surfaces and "hidden_dim" in {f.name for f in dataclasses.fields(build_component("attenuations", name))}
+    except (KneasError, AttributeError, TypeError):  # not installed or not a surface model: nothing to keep
+        return False
 
 
 def _drop_other_kind(base, data: dict) -> dict:
