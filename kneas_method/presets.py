@@ -165,10 +165,10 @@ def resolve(config: RunConfig) -> RunConfig:
         model = dataclasses.replace(model, encoding_options=merged)
     elif model.encoding_options is None:
         model = dataclasses.replace(model, encoding_options={})
-    if field_has_surfaces(model):
+    surfaces = field_has_surfaces(model)
+    if surfaces:
         model = dataclasses.replace(model, attenuation_options=attenuation_options(model, table["attenuation"]))
     K = config.num_materials
-    surfaces = field_has_surfaces(model)
     if K is not None:
         if not surfaces:
             raise ConfigError(f"method {config.method!r} has no materials; drop --num-materials")
