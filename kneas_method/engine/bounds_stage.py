@@ -27,6 +27,7 @@ from .. import registry
 from ..config import to_dict
 from ..console import say
 from ..errors import ConfigError
+from ..presets import TABLE, attenuation_options
 from .evaluate import sample_volume
 from .run_dir import safe_name, write_json
 
@@ -95,8 +96,6 @@ def prior_config(config):
         selector=base.selector, selector_options=dict(base.selector_options), num_materials=1,
         floater=False, alphas=None, betas=None,
     )
-    from ..presets import TABLE, attenuation_options
-
     preset = TABLE.get(config.preset, {}).get("attenuation", {})  # the preset's width, as the run's own network has
     model = dataclasses.replace(model, attenuation_options=attenuation_options(model, preset))
     trainer = dataclasses.replace(config.trainer, epochs=config.trainer.prior_epochs)
