@@ -74,9 +74,9 @@ class TrainerConfig:
         eval_every / checkpoint_every: epochs between held-out evaluations /
             checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
-        eval_views: held-out views rendered at intermediate evaluations (None = all).
-        eval_projections: how the final evaluation makes the held-out projections of its
-            2D metrics: ``rendered`` through the field (``model.num_eval_samples`` per ray;
+        eval_views: held-out views scored at intermediate evaluations (None = all).
+        eval_projections: how the final evaluation, and the intermediate ones, make the
+            held-out projections of their 2D metrics: ``rendered`` through the field (``model.num_eval_samples`` per ray;
             the paper), or ``volume``: the field sampled at the voxel centres (the volume the
             3D metrics score) and projected by the Joseph projector, the operator that scores
             the classical methods' volumes too; tens of times fewer field queries, whatever

@@ -286,6 +286,18 @@ class CTModel(nn.Module):
 
         return occupancy_at(self.occupancy, self.occupancy_box[0], self.occupancy_box[1], points.detach())
 
+    def rays_through_occupied(self, origins: torch.Tensor, directions: torch.Tensor, near, far) -> Optional[torch.Tensor]:
+        """``[R]`` bool: the rays ``origins, directions`` [R, 3] that cross a cell of the occupancy grid
+        between ``near`` and ``far`` (``occupancy.ray_intervals``); the others render exactly 0. None
+        without a grid."""
+        if self.occupancy is None:
+            return None
+        from .occupancy import ray_intervals
+
+        t0, t1 = ray_intervals(self.occupancy, self.occupancy_box[0], self.occupancy_box[1], origins, directions,
+                               float(near), float(far))
+        return t1 > t0
+
     @property
     def bounds(self) -> tuple[list[float], list[float]]:
         """Current ``(alphas, betas)`` in data units."""

@@ -309,7 +309,8 @@ def procedure_notes(config: TrainConfig) -> list[str]:
                      "of them (--trainer.lr-decay-at 0.5 for the paper's)")
     if config.trainer.eval_projections == "volume":
         notes.append("evaluation: 2D metrics on the held-out views projected from the volume at the voxel centres (Joseph projector, "
-                     "as for the classical methods), not rendered through the field (--trainer.eval-projections rendered for the paper's)")
+                     "as for the classical methods; the validation during training too), not rendered through the field "
+                     "(--trainer.eval-projections rendered for the paper's)")
     if config.model.quadrature == "voxel-planes":
         notes.append("quadrature: one sample where each ray crosses each voxel-centre plane of its dominant axis (Joseph's rule "
                      "on the scene's voxel grid), not the paper's jittered bins (--model.quadrature bins for the paper's)")

@@ -77,6 +77,29 @@ def test_band_cgls_keeps_x_in_the_band_lowers_the_residual_and_honours_the_stop(
     assert h0 == history[:1] and float(x0.abs().max()) == 0.0
 
 
+class _Counting:
+    """A projector that counts its forward and back projections."""
+
+    def __init__(self, A):
+        self.A, self.forwards, self.backs = A, 0, 0
+
+    def forward(self, volume):
+        self.forwards += 1
+        return self.A.forward(volume)
+
+    def back(self, projections):
+        self.backs += 1
+        return self.A.back(projections)
+
+
+def test_band_cgls_projects_once_each_way_per_iteration():
+    scene, model, v, b = _sphere_problem()
+    A = _Counting(Projector(scene.geometry, scene.train.angles))
+    band = edge_band(v)
+    x, history = band_cgls(A, b - A.A.forward(v), band, 3)
+    assert len(history) == 4 and (A.forwards, A.backs) == (3, 3)  # no back-projection for a 4th direction
+
+
 def naive_discretisation_error(model, geometry, volume, band, A, A_fine, *, fine, sharpen):
     """Test oracle: the model queried at every fine centre of the band (twice as sharp edges)."""
     w = torch.nn.functional.interpolate(volume[None, None], scale_factor=fine, mode="trilinear", align_corners=False)[0, 0]
@@ -88,6 +111,30 @@ def naive_discretisation_error(model, geometry, volume, band, A, A_fine, *, fine
         w[fine_band] = model.query(points)["mu"].float()
     model.boundary.log_s.data = saved
     return A_fine.forward(w) - A.forward(box_mean(w, fine))
+
+
+def _interpolate_fields_naive(index, table, coords):
+    """The oracle: each point's 8 corners indexed by their clamped ``ijk`` one at a time."""
+    n = torch.tensor(index.shape)
+    out = torch.zeros(len(coords), table.shape[1], dtype=torch.float64)
+    for p, c in enumerate(coords.double()):
+        low = c.floor()
+        t = c - low
+        for corner in range(8):
+            offset = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
+            i, j, k = torch.minimum((low.long() + offset).clamp_min(0), n - 1).tolist()
+            weight = torch.where(offset.bool(), t, 1 - t).prod()
+            out[p] += weight * table[int(index[i, j, k])].double()
+    return out
+
+
+def test_interpolate_fields_matches_the_naive_corner_by_corner_interpolation_at_the_edges_too():
+    g = torch.Generator().manual_seed(1)
+    index = torch.randperm(4 * 5 * 6, generator=g).reshape(4, 5, 6).to(torch.int32)  # rows in any order, as band_fields
+    table = torch.randn(4 * 5 * 6, 3, generator=g)
+    coords = torch.rand(300, 3, generator=g) * torch.tensor([4.0, 5.0, 6.0]) - 0.5  # half a cell beyond each edge
+    expected = _interpolate_fields_naive(index, table, coords)
+    assert torch.allclose(interpolate_fields(index, table, coords).double(), expected, atol=1e-5)
 
 
 def test_interpolate_fields_is_exact_on_a_linear_field_and_refuses_corners_not_queried():
@@ -139,6 +186,12 @@ def test_band_correction_moves_a_misplaced_surface_model_towards_the_truth():
     ignored = band_correction(model, v, b, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0,
                               discretisation=torch.zeros_like(result.discretisation))
     assert not torch.allclose(ignored.grid, result.grid)  # the d given is the one used
+    projectors: dict = {}
+    kept = band_correction(model, v, b, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0, projectors=projectors)
+    assert sorted(projectors) == [1, 3] and torch.allclose(kept.grid, result.grid, atol=1e-7)  # the scene's and the 3x grid's
+    held = dict(projectors)
+    band_correction(model, v, b, scene.geometry, scene.train.angles, iterations=3, noise_factor=2.0, projectors=projectors)
+    assert all(projectors[f] is held[f] for f in held)  # a later pass builds no projector (nor its ray tables) again
 
 
 def test_requery_band_queries_the_band_and_keeps_the_rest():

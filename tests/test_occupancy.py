@@ -92,3 +92,42 @@ def test_model_with_occupancy_grid_is_empty_outside_and_trains(scene):
     losses = model.loss_dict(batch, 0.0)
     losses["total"].backward()
     assert torch.isfinite(losses["total"]) and model.field.encoding.table.grad.abs().sum() > 0
+
+
+def test_render_views_renders_only_the_rays_through_the_grid_and_the_same_views(scene):
+    from kneas_method.engine.evaluate import render_views
+
+    cfg = presets.resolve(dataclasses.replace(methods.k_neas.config, preset="tiny", num_materials=2))
+    mc = dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=16)
+    torch.manual_seed(0)
+    model = mc.setup(scale=scene.geometry.scale)
+    model.set_bounds([0.3, 0.5], [0.0, 0.3])
+    with torch.no_grad():
+        model.field.mlp[-1].bias[:2] -= 1.0  # material everywhere the grid keeps
+    model.set_occupancy(visual_hull(scene.geometry, scene.train.angles, scene.train.projections, resolution=16),
+                        *box_of(scene.geometry))
+    angles = [0.4, 2.2]
+    origins, directions = scene.geometry.rays(angles)
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    near, far = scene.geometry.near_far
+    hit = model.rays_through_occupied(origins, directions, near, far)
+    assert hit.any() and (~hit).any()
+    with torch.no_grad():
+        every = model.render(origins, directions, near, far, 16, stratified=False).line_integral.reshape(2, *scene.val.projections.shape[1:])
+    queried = []
+    real_query = model.query
+    model.query = lambda points: queried.append(len(points)) or real_query(points)
+    rendered = render_views(model, scene, angles, chunk=97, n_samples=16)
+    assert sum(queried) == int(hit.sum()) * 16  # only the rays through the grid are rendered
+    assert np.allclose(rendered, every.numpy(), atol=1e-6) and float(np.abs(rendered).max()) > 0
+    assert np.all(rendered.reshape(-1)[~hit.numpy()] == 0)
+    # the volume at the voxel centres: the field queried only inside the grid, the same volume
+    from kneas_method.engine.evaluate import sample_volume
+
+    pts = scene.geometry.voxel_centres().reshape(-1, 3)
+    with torch.no_grad():
+        every = real_query(pts)["mu"].reshape(tuple(scene.geometry.n_voxel)).numpy()
+    queried.clear()
+    volume = sample_volume(model, scene.geometry, chunk=1000)
+    inside = int((model.occupied(pts) > 0).sum())
+    assert sum(queried) == inside < len(pts) and np.array_equal(volume, every) and float(volume.max()) > 0

@@ -600,3 +600,22 @@ def test_runs_skip_the_fits_draws_outside_the_grid_and_older_runs_keep_their_rul
     older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "fit_outside"}}
     read = config_from_dict(older, "config.json").trainer
     assert read.fit_outside == "labels" and read.anchor_outside == "skip"
+
+
+@pytest.mark.parametrize("how", ["volume", "rendered"])
+def test_validation_scores_the_views_as_the_final_evaluation_makes_them(small_scene, tmp_path, how):
+    from kneas_method.classical.projector import forward
+    from kneas_method.engine.evaluate import render_views
+    from kneas_method.evaluation.metrics import psnr2d
+
+    scene = load_naf(small_scene)
+    cfg = _tiny_config(eval_projections=how, eval_views=2)
+    trainer = Trainer(cfg, scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    idx = np.unique(np.round(np.linspace(0, len(scene.val) - 1, 2)).astype(int))
+    angles, truth = np.asarray(scene.val.angles)[idx], np.asarray(scene.val.projections)[idx]
+    projected = forward(sample_volume(trainer.model, scene.geometry), scene.geometry, angles)
+    rendered = render_views(trainer.model, scene, angles, chunk=int(cfg.trainer.eval_chunk))
+    expected = projected if how == "volume" else rendered
+    other = rendered if how == "volume" else projected
+    assert trainer.validate() == pytest.approx(float(np.mean(psnr2d(expected, truth))), rel=1e-6)
+    assert float(np.mean(psnr2d(other, truth))) != pytest.approx(trainer.validate(), rel=1e-6)  # the two ways differ

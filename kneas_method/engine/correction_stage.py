@@ -46,6 +46,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     passes: list[dict] = []
     discretisation = None
     volume = fitted = None
+    projectors: dict = {}  # the passes' projectors, kept with their ray tables
     for k in range(int(t.correction_passes)):
         if volume is None:
             volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
@@ -56,6 +57,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
                                      iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
                                      ring=float(t.correction_ring),
                                      discretisation=None if k % int(t.correction_refresh) == 0 else discretisation,
+                                     projectors=projectors,
                                      progress=lambda message: say(f"correction {k + 1}: {message}"))
         discretisation = result.discretisation
         passes.append(result.to_json())

@@ -33,7 +33,7 @@ import torch
 from ..evaluation.metrics import projection_metrics, volume_metrics
 
 __all__ = ["evaluate_model", "evaluate_volume", "render_views", "sample_volume", "model_metrics_from_arrays",
-           "model_arrays", "eval_projections", "Evaluation", "evaluate_model_stage"]
+           "model_arrays", "held_out_projections", "eval_projections", "Evaluation", "evaluate_model_stage"]
 
 Progress = Optional[Callable[[int, int], None]]
 
@@ -57,8 +57,9 @@ def render_views(model, scene, angles, *, device="cpu", chunk: int = 4096, n_sam
                  progress: Progress = None) -> np.ndarray:
     """Render the views at ``angles`` [N] (rad): line integrals [N, nV, nU] (float32).
 
-    Evenly spaced samples (``n_samples``, default the model's ``num_eval_samples``).
-    ``progress(done_rays, total_rays)`` is called after every chunk.
+    Evenly spaced samples (``n_samples``, default the model's ``num_eval_samples``). With an
+    occupancy grid only the rays that cross it are rendered; the others are exactly 0
+    (``CTModel.rays_through_occupied``). ``progress(done_rays, total_rays)`` is called after every chunk.
     """
     was_training = model.training
     model.eval()
@@ -72,14 +73,20 @@ def render_views(model, scene, angles, *, device="cpu", chunk: int = 4096, n_sam
         for k, a in enumerate(angles):
             origins, directions = geometry.rays(angles[k : k + 1], device=device)
             origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-            parts = []
-            for i in range(0, len(origins), chunk):
-                r = model.render(origins[i : i + chunk], directions[i : i + chunk], near, far, n_samples, stratified=False)
-                parts.append(r.line_integral.float().cpu())
-                done += len(parts[-1])
+            line = torch.zeros(len(origins), dtype=torch.float32)
+            hit = model.rays_through_occupied(origins, directions, near, far)
+            rays = torch.arange(len(origins), device=origins.device) if hit is None else hit.nonzero().reshape(-1)
+            for i in range(0, len(rays), chunk):
+                j = rays[i : i + chunk]
+                r = model.render(origins[j], directions[j], near, far, n_samples, stratified=False)
+                line[j.cpu()] = r.line_integral.float().cpu()
+                done += len(j)
                 if progress is not None:
                     progress(done, total)
-            out[k] = torch.cat(parts).reshape(nv, nu).numpy()
+            done = (k + 1) * nu * nv
+            if progress is not None:
+                progress(done, total)
+            out[k] = line.reshape(nv, nu).numpy()
     finally:
         model.train(was_training)
     return out
@@ -87,16 +94,22 @@ def render_views(model, scene, angles, *, device="cpu", chunk: int = 4096, n_sam
 
 @torch.no_grad()
 def sample_volume(model, geometry, *, device="cpu", chunk: int = 65536, progress: Progress = None) -> np.ndarray:
-    """The model's attenuation ``mu`` (data units) at the voxel centres: [nx, ny, nz] float32."""
+    """The model's attenuation ``mu`` (data units) at the voxel centres: [nx, ny, nz] float32.
+
+    With an occupancy grid the field is queried only at the centres inside it; the others are
+    exactly 0 (``CTModel.compose``)."""
     was_training = model.training
     model.eval()
     pts = geometry.voxel_centres(device=device).reshape(-1, 3)
-    out = torch.empty(len(pts), dtype=torch.float32)
+    out = torch.zeros(len(pts), dtype=torch.float32)
+    occupied = model.occupied(pts)
+    cells = torch.arange(len(pts), device=pts.device) if occupied is None else (occupied > 0).nonzero().reshape(-1)
     try:
-        for i in range(0, len(pts), chunk):
-            out[i : i + chunk] = model.query(pts[i : i + chunk])["mu"].float().cpu()
-            if progress is not None:
-                progress(min(i + chunk, len(pts)), len(pts))
+        for i in range(0, len(cells), chunk):
+            j = cells[i : i + chunk]
+            out[j.cpu()] = model.query(pts[j])["mu"].float().cpu()
+            if progress is not None:  # in voxels of the whole grid
+                progress(len(pts) * min(i + chunk, len(cells)) // max(1, len(cells)), len(pts))
     finally:
         model.train(was_training)
     return out.reshape(tuple(geometry.n_voxel)).numpy()
@@ -129,18 +142,27 @@ def model_arrays(model, scene, config, device, *, views: Progress = None, voxels
     the test suite checks that both agree on a smooth field). ``views(done, total)`` reports
     held-out views, ``voxels(done, total)`` voxels.
     """
-    from ..classical.projector import forward
-
     device = torch.device(device)
     volume = sample_volume(model, scene.geometry, device=device, progress=voxels)
-    angles = np.asarray(scene.val.angles)
+    return held_out_projections(model, scene, config, device, scene.val.angles, volume=volume, progress=views), volume
+
+
+def held_out_projections(model, scene, config, device, angles, *, volume: Optional[np.ndarray] = None,
+                         progress: Progress = None) -> np.ndarray:
+    """The model's projections [N, nV, nU] at ``angles`` [N] as the run's evaluation makes them
+    (:func:`eval_projections`): rendered through the field, or its ``volume`` at the voxel centres
+    (sampled here when not given) projected by the Joseph projector. ``progress(done, total)``
+    reports views. The validation during training (``Trainer.validate``) makes them this way too."""
+    from ..classical.projector import forward
+
+    angles = np.asarray(angles, dtype=np.float64).reshape(-1)
     if eval_projections(config) == "volume":
-        proj = forward(volume, scene.geometry, angles, progress=views)
-    else:
-        nu, nv = scene.geometry.n_detector
-        rays = None if views is None else (lambda done, total: views(done / (nu * nv), len(angles)))
-        proj = render_views(model, scene, angles, device=device, chunk=_chunk(config), n_samples=_eval_samples(config), progress=rays)
-    return proj, volume
+        if volume is None:
+            volume = sample_volume(model, scene.geometry, device=device)
+        return forward(volume, scene.geometry, angles, progress=progress)
+    nu, nv = scene.geometry.n_detector
+    rays = None if progress is None else (lambda done, total: progress(done / (nu * nv), len(angles)))
+    return render_views(model, scene, angles, device=device, chunk=_chunk(config), n_samples=_eval_samples(config), progress=rays)
 
 
 def evaluate_model(model, scene, config, device, *, return_arrays: bool = False):

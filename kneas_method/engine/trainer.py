@@ -233,15 +233,16 @@ class Trainer:
 
     @torch.no_grad()
     def validate(self) -> float:
-        """Mean 2D PSNR over ``trainer.eval_views`` held-out views (all when None)."""
-        from .evaluate import render_views
+        """Mean 2D PSNR over ``trainer.eval_views`` held-out views (all when None), their projections
+        made as the final evaluation makes them (``trainer.eval_projections``: rendered through the
+        field, or the model's volume projected)."""
+        from .evaluate import held_out_projections
 
         val = self.scene.val
         n = len(val)
         k = self.config.trainer.eval_views
         idx = np.arange(n) if not k or k >= n else np.unique(np.round(np.linspace(0, n - 1, int(k))).astype(int))
-        pred = render_views(self.model, self.scene, np.asarray(val.angles)[idx], device=self.device,
-                            chunk=int(self.config.trainer.eval_chunk or 4096))
+        pred = held_out_projections(self.model, self.scene, self.config, self.device, np.asarray(val.angles)[idx])
         return float(np.mean(psnr2d(pred, np.asarray(val.projections)[idx])))
 
     # ----------------------------------------------------------- warm start
