@@ -66,16 +66,24 @@ def test_ray_stretches_hold_every_occupied_cell(scene):
     assert empty < len(origins)
 
 
-def test_model_with_occupancy_grid_is_empty_outside_and_trains(scene):
+def _carved_model(scene):
+    """``(config, model)``: a tiny 2-material k-neas model with "material everywhere" before its
+    16^3 occupancy grid, the scene's visual hull, carves it."""
     cfg = presets.resolve(dataclasses.replace(methods.k_neas.config, preset="tiny", num_materials=2))
     mc = dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=16)
     torch.manual_seed(0)
     model = mc.setup(scale=scene.geometry.scale)
     model.set_bounds([0.3, 0.5], [0.0, 0.3])
     with torch.no_grad():
-        model.field.mlp[-1].bias[:2] -= 1.0  # "material everywhere" before the grid carves it
+        model.field.mlp[-1].bias[:2] -= 1.0
     occ = visual_hull(scene.geometry, scene.train.angles, scene.train.projections, resolution=16)
     model.set_occupancy(occ, *box_of(scene.geometry))
+    return dataclasses.replace(cfg, model=mc), model
+
+
+def test_model_with_occupancy_grid_is_empty_outside_and_trains(scene):
+    cfg, model = _carved_model(scene)
+    mc = cfg.model
     pts = scene.geometry.voxel_centres().reshape(-1, 3)
     q = model.query(pts)
     inside = model.occupied(pts) > 0
@@ -97,15 +105,7 @@ def test_model_with_occupancy_grid_is_empty_outside_and_trains(scene):
 def test_render_views_renders_only_the_rays_through_the_grid_and_the_same_views(scene):
     from kneas_method.engine.evaluate import render_views
 
-    cfg = presets.resolve(dataclasses.replace(methods.k_neas.config, preset="tiny", num_materials=2))
-    mc = dataclasses.replace(cfg.model, occupancy_grid=True, occupancy_resolution=16)
-    torch.manual_seed(0)
-    model = mc.setup(scale=scene.geometry.scale)
-    model.set_bounds([0.3, 0.5], [0.0, 0.3])
-    with torch.no_grad():
-        model.field.mlp[-1].bias[:2] -= 1.0  # material everywhere the grid keeps
-    model.set_occupancy(visual_hull(scene.geometry, scene.train.angles, scene.train.projections, resolution=16),
-                        *box_of(scene.geometry))
+    _, model = _carved_model(scene)
     angles = [0.4, 2.2]
     origins, directions = scene.geometry.rays(angles)
     origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
