@@ -360,6 +360,10 @@ class CTModel(nn.Module):
         if self.occupancy is not None:  # samples only on the stretch of each ray that can hold material
             from .occupancy import ray_intervals
 
+            if any(torch.is_tensor(v) and v.numel() > 1 for v in (near, far)):
+                raise ConfigError("a model with an occupancy grid renders rays between one near and one far for all of "
+                                  "them; pass scalars (the scene's geometry.near_far), not one per ray")
+
             near, far = ray_intervals(self.occupancy, self.occupancy_box[0], self.occupancy_box[1], origins, directions,
                                       float(near), float(far))
         if self.quadrature == "voxel-planes":
@@ -400,7 +404,8 @@ class CTModel(nn.Module):
         """Render rays ``origins`` [R, 3], ``directions`` [R, 3] (unnormalised, model units).
 
         Args:
-            near, far: ray-parameter range, scalars or [R] (model units).
+            near, far: ray-parameter range, scalars or [R] (model units; scalars with an
+                occupancy grid, which finds each ray's stretch between them).
             n_samples: points per ray; default ``num_samples`` in training mode,
                 ``num_eval_samples`` in eval mode.
             stratified: jittered bins (default: ``self.training``) or even spacing.

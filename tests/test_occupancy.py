@@ -9,6 +9,7 @@ import torch
 from kneas_method import methods, presets
 from kneas_method.data.simulate import SimulationConfig, simulate_phantom
 from kneas_method.datamanagers.ct import noise_air_threshold
+from kneas_method.errors import ConfigError
 from kneas_method.occupancy import box_of, occupancy_at, ray_intervals, visual_hull
 
 SIM = SimulationConfig(n_voxel=24, voxel_mm=10.0, n_detector=24, n_train=12, n_val=2)
@@ -121,6 +122,8 @@ def test_render_views_renders_only_the_rays_through_the_grid_and_the_same_views(
     assert sum(queried) == int(hit.sum()) * 16  # only the rays through the grid are rendered
     assert np.allclose(rendered, every.numpy(), atol=1e-6) and float(np.abs(rendered).max()) > 0
     assert np.all(rendered.reshape(-1)[~hit.numpy()] == 0)
+    with pytest.raises(ConfigError, match="pass scalars"):  # per-ray limits: one line, not a shape error
+        model.render(origins, directions, torch.full((len(origins),), float(near)), far, 16)
     # the volume at the voxel centres: the field queried only inside the grid, the same volume
     from kneas_method.engine.evaluate import sample_volume
 
