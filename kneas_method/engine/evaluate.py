@@ -68,7 +68,8 @@ def render_views(model, scene, angles, *, device="cpu", chunk: int = 4096, n_sam
     nu, nv = geometry.n_detector
     angles = np.asarray(angles, dtype=np.float64).reshape(-1)
     out = np.zeros((len(angles), nv, nu), dtype=np.float32)
-    total, done = len(angles) * nu * nv, 0
+    per_view = nu * nv
+    total = len(angles) * per_view
     try:
         for k, a in enumerate(angles):
             origins, directions = geometry.rays(angles[k : k + 1], device=device)
@@ -80,12 +81,10 @@ def render_views(model, scene, angles, *, device="cpu", chunk: int = 4096, n_sam
                 j = rays[i : i + chunk]
                 r = model.render(origins[j], directions[j], near, far, n_samples, stratified=False)
                 line[j.cpu()] = r.line_integral.float().cpu()
-                done += len(j)
-                if progress is not None:
-                    progress(done, total)
-            done = (k + 1) * nu * nv
-            if progress is not None:
-                progress(done, total)
+                if progress is not None:  # in rays of the whole detector
+                    progress(k * per_view + per_view * min(i + chunk, len(rays)) // len(rays), total)
+            if progress is not None and len(rays) == 0:
+                progress((k + 1) * per_view, total)
             out[k] = line.reshape(nv, nu).numpy()
     finally:
         model.train(was_training)
