@@ -10,9 +10,12 @@ to that band the views determine much of it. The correction is ``x``, from CGLS 
 - ``M`` the band: voxels within ``dilate`` voxels of a place where ``v``'s central-difference
   gradient exceeds ``gradient`` times ``v``'s 99.5th percentile per voxel, from ``v`` alone
   (:func:`edge_band`; relative, so the band is the same whatever the data's units), as
-  weights: 1 at the steep voxels themselves and ``ring`` on the rest of the band (its outer
-  ring), so ``x = M z`` with CGLS on ``(A M) z = r`` (column scaling: the ring's share of the
-  correction is damped; ``ring`` 1 solves in the whole band, 0 at the steep voxels only);
+  weights, so ``x = M z`` with CGLS on ``(A M) z = r`` (column scaling: a voxel of weight ``w``
+  moves as if its unknown were ``w`` times less free): by default 1 at the steep voxels
+  themselves and ``ring`` on the rest of the band (its outer ring: ``ring`` 1 solves in the whole
+  band alike, 0 at the steep voxels only); or (``weighting="gradient"``) the square root of
+  ``v``'s gradient magnitude over its median on the steep voxels, at most 2
+  (:func:`gradient_weights`: the correction goes where the edges are steepest);
 - ``r = b - d - A v``, where ``d`` is the scene grid's **discretisation error**, the part of ``b``
   that no voxel volume on this grid reproduces: ``d = A_f w - A box(w)``, ``w`` the model's
   field on a grid ``fine`` times finer (in the band: its smooth fields, signed distances and
@@ -45,7 +48,7 @@ import torch.nn.functional as F
 
 from .errors import KneasError
 
-__all__ = ["grow", "edge_band", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
+__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
@@ -54,6 +57,7 @@ MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal n
 QUERY_CHUNK = 32768  # points per model query: 2x faster on a CPU than 262144 (cache)
 INTERPOLATION_CHUNK = 1 << 18  # fine points per interpolation of the queried fields
 FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
+GRADIENT_WEIGHT_CAP = 4.0  # gradient weights: at most sqrt(4) = 2, at 4x the steep voxels' median gradient
 
 
 def grow(mask: torch.Tensor, voxels: int = 1) -> torch.Tensor:
@@ -64,12 +68,29 @@ def grow(mask: torch.Tensor, voxels: int = 1) -> torch.Tensor:
     return F.max_pool3d(mask.float()[None, None], 2 * voxels + 1, 1, voxels)[0, 0] > 0
 
 
+def gradient_magnitude(volume: torch.Tensor) -> torch.Tensor:
+    """[nx, ny, nz] -> [nx, ny, nz]: the central-difference gradient's magnitude, per voxel."""
+    gx, gy, gz = torch.gradient(volume)
+    return (gx * gx + gy * gy + gz * gz).sqrt()
+
+
 def edge_band(volume: torch.Tensor, gradient: float = 0.02, dilate: int = 1) -> torch.Tensor:
     """[nx, ny, nz] -> bool [nx, ny, nz]: within ``dilate`` voxels of a central-difference
     gradient magnitude above ``gradient`` times the volume's 99.5th percentile, per voxel."""
     level = float(torch.quantile(volume.flatten()[::max(1, volume.numel() // 1_000_000)].float(), 0.995))
-    gx, gy, gz = torch.gradient(volume)
-    return grow((gx * gx + gy * gy + gz * gz).sqrt() > gradient * level, dilate)
+    return grow(gradient_magnitude(volume) > gradient * level, dilate)
+
+
+def gradient_weights(volume: torch.Tensor, steep: torch.Tensor, cap: float = GRADIENT_WEIGHT_CAP) -> torch.Tensor:
+    """[nx, ny, nz] -> [nx, ny, nz]: ``sqrt(min(g / m, cap))``, ``g`` the volume's gradient magnitude
+    (:func:`gradient_magnitude`) and ``m`` its median over the ``steep`` [nx, ny, nz] (bool) voxels:
+    1 at a typical steep voxel, up to ``sqrt(cap)`` at the steepest edges, less where the volume is
+    flatter (all 0 where nothing is steep). Relative, so the same whatever the data's units."""
+    g = gradient_magnitude(volume.float())
+    if not bool(steep.any()):
+        return torch.zeros_like(g)
+    m = float(g[steep].median())
+    return (g / m).clamp(max=float(cap)).sqrt() if m > 0 else torch.zeros_like(g)
 
 
 def box_mean(volume: torch.Tensor, f: int) -> torch.Tensor:
@@ -286,7 +307,8 @@ class Correction:
 @torch.no_grad()
 def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
                     noise_factor: float = 1.5, fine: int = 3, sharpen: float = 2.0,
-                    gradient: float = 0.02, dilate: int = 1, ring: float = 0.5, discretisation: Optional[torch.Tensor] = None,
+                    gradient: float = 0.02, dilate: int = 1, weighting: str = "ring", ring: float = 0.5,
+                    discretisation: Optional[torch.Tensor] = None,
                     projectors: Optional[dict] = None, progress: Optional[Callable[[str], None]] = None) -> Correction:
     """The band correction of a surface ``model`` whose volume at the voxel centres is
     ``volume`` [nx, ny, nz], against the training ``projections`` [N, nV, nU] at ``angles`` [N].
@@ -294,6 +316,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     See the module docstring. ``discretisation``: ``d`` [N, nV, nU] of an earlier pass
     (``Correction.discretisation``), used instead of computing it again. ``fine`` is lowered (to 2
     at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels.
+    ``weighting``: the CGLS column weights in the band, ``gradient`` (:func:`gradient_weights`)
+    or ``ring`` (1 at the steep voxels, ``ring`` on the rest of the band).
     ``ring``: the CGLS weight of the band's voxels that are not steep themselves (from 0, the
     steep voxels only, to 1, the whole band alike); the discretisation estimate and the returned
     ``band`` (where the stage fits) are the whole band whatever it is.
@@ -315,9 +339,14 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     if not 0.0 <= ring <= 1.0:
         raise KneasError(f"the correction's ring weight is {ring!r}; give --trainer.correction-ring a number from 0 (the steep "
                          "voxels only) to 1 (the whole band)")
+    if weighting not in ("gradient", "ring"):
+        raise KneasError(f"the correction's weighting is {weighting!r}; give --trainer.correction-weights gradient or ring")
     steep = edge_band(volume, gradient, 0)
     band = grow(steep, dilate)
-    weights = steep.float() + float(ring) * (band & ~steep).float()
+    if weighting == "gradient":
+        weights = band.float() * gradient_weights(volume, steep)
+    else:
+        weights = steep.float() + float(ring) * (band & ~steep).float()
     projectors = {} if projectors is None else projectors
 
     def projector(f: int):
@@ -340,7 +369,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
         d = discretisation_error(model, geometry, volume, band, A, projector(fine), fine=fine, sharpen=sharpen)
     r = r - d
     sigma2 = noise_variance(r)
-    where = ("band" if ring == 1.0 else f"band's steep voxels ({float(steep.float().mean()):.1%} of the voxels)" if ring == 0.0
+    where = ("band, weighted by its gradient" if weighting == "gradient" else "band" if ring == 1.0
+             else f"band's steep voxels ({float(steep.float().mean()):.1%} of the voxels)" if ring == 0.0
              else f"band, its outer ring weighted {ring:g}")
     say(f"residual {float((r * r).mean()):.3g} (mean square), noise {sigma2:.3g}; CGLS in the {where}")
     x, residuals = band_cgls(A, r, weights, iterations, stop=lambda res: float((res * res).mean()) <= noise_factor * sigma2)

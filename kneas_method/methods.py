@@ -57,6 +57,7 @@ WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
 AnchorRegion = Literal["box", "hull"]
 OutsideRule = Literal["labels", "skip"]
+CorrectionWeights = Literal["gradient", "ring"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
 
@@ -142,9 +143,18 @@ class TrainerConfig:
             tiny 0; cpu 12).
         correction_iterations: CGLS iterations per pass at most (4: with the ring at half weight, 4
             instead of 3 gained abdomen +0.14 dB, docs/experiments.md, 56th stop).
-        correction_ring: the weight, in each pass's CGLS, of the band's voxels that are not steep
-            themselves (its outer ring, one voxel wide): 1 solves in the whole band alike, 0 at the
-            steep voxels only (about half the unknowns); between, the ring's share of the
+        correction_weights: the column weights of each pass's CGLS in the band (``x = M z``: a
+            voxel of weight ``w`` moves as if its unknown were ``w`` times less free). ``ring`` (the
+            default): 1 at the steep voxels and ``correction_ring`` on the rest of the band;
+            ``gradient``: the square root of the volume's gradient magnitude over its median on the
+            band's steep voxels, at most 2 (at most 4 times that median), so the correction goes
+            where the edges are steepest. Measured against ``ring`` (docs/experiments.md, 63rd
+            stop): abdomen +0.30 dB, jaw -0.16, but abdomen's bones' surfaces worse (cortical Dice
+            0.925 -> 0.911, below the best thresholded classical volume's 0.916), so not the default.
+        correction_ring: with ``correction_weights ring`` (None = 0.5; refused with
+            ``gradient``), the weight of the band's voxels that are
+            not steep themselves (its outer ring, one voxel wide): 1 solves in the whole band alike,
+            0 at the steep voxels only (about half the unknowns); between, the ring's share of the
             correction is damped (column scaling). The discretisation estimate and the fit use the
             whole band whatever it is, so the fit holds the ring near the model's volume. Measured
             in docs/experiments.md (56th stop), against 1: 0.5 chest +0.26, abdomen +0.17, foot +0.03,
@@ -191,7 +201,8 @@ class TrainerConfig:
     anchor_edge_contrast: Optional[float] = None
     correction_passes: Optional[int] = None
     correction_iterations: int = 4
-    correction_ring: float = 0.5
+    correction_weights: CorrectionWeights = "ring"
+    correction_ring: Optional[float] = None
     correction_refresh: int = 3
     correction_noise_factor: float = 1.5
     correction_steps: int = 75

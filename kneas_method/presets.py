@@ -225,9 +225,12 @@ def resolve(config: RunConfig) -> RunConfig:
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
             raise ConfigError(f"trainer.{setting} must be a number >= 0, got {value!r}")
     ring = trainer.correction_ring
-    if not (isinstance(ring, (int, float)) and not isinstance(ring, bool) and 0 <= ring <= 1):
+    if ring is not None and trainer.correction_weights != "ring":
+        raise ConfigError(f"trainer.correction_ring weights the band's outer ring in the ring rule, and the correction weights are "
+                          f"{trainer.correction_weights!r}; add --trainer.correction-weights ring or drop --trainer.correction-ring")
+    if ring is not None and not (isinstance(ring, (int, float)) and not isinstance(ring, bool) and 0 <= ring <= 1):
         raise ConfigError(f"trainer.correction_ring must be a number from 0 (the band's steep voxels only) to 1 (the whole band), "
-                          f"got {ring!r}; give --trainer.correction-ring 0.5 (the default) or leave it out")
+                          f"got {ring!r}; give --trainer.correction-ring 0.5 (the ring rule's default) or leave it out")
     if trainer.correction_passes and not surfaces:
         if config.trainer.correction_passes is not None:
             raise ConfigError(f"method {config.method!r} has no surfaces, and the band correction sharpens them to model the "

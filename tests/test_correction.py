@@ -15,7 +15,7 @@ import torch
 from conftest import exact_sphere_model, run, run_dir_of, sphere_scene, sphere_scene_file
 from kneas_method.classical.projector import Projector
 from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band, requery_band,
-                                     fine_geometry, interpolate_fields, noise_variance)
+                                     fine_geometry, gradient_weights, interpolate_fields, noise_variance)
 from kneas_method.data.simulate import SimulationConfig
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.errors import KneasError
@@ -251,6 +251,43 @@ def test_band_correction_ring_weight_sets_where_it_solves_and_keeps_the_band_for
             band_correction(model, v, b, scene.geometry, scene.train.angles, ring=bad, **kw)
 
 
+def test_gradient_weights_follow_the_square_root_of_the_gradient_over_the_steep_voxels_median():
+    g = torch.Generator().manual_seed(4)
+    v = torch.zeros(14, 12, 10)
+    v[7:] = 0.4  # a step between x = 6 and 7
+    v[2:5, 2:5, 2:5] += 2.0  # a small cube with 5x steeper faces
+    v += 0.001 * torch.rand(v.shape, generator=g)
+    steep = edge_band(v, dilate=0)
+    w = gradient_weights(v, steep)
+    gx, gy, gz = np.gradient(v.double().numpy())  # the oracle, in numpy
+    magnitude = np.sqrt(gx ** 2 + gy ** 2 + gz ** 2)
+    expected = np.sqrt(np.minimum(magnitude / np.median(magnitude[steep.numpy()]), 4.0))
+    assert np.allclose(w.numpy(), expected, rtol=1e-4, atol=1e-6)
+    assert float(w[6, 9, 8]) == pytest.approx(1.0, abs=0.02)  # the step's voxels hold the median
+    assert float(w.max()) == pytest.approx(2.0) and float(w[1, 3, 3]) == pytest.approx(2.0)  # the cube's face: capped
+    assert float(w[11, 9, 8]) < 0.1  # flat parts barely move
+    assert torch.allclose(gradient_weights(1000 * v, steep), w, atol=1e-5)  # the same whatever the data's units
+    assert float(gradient_weights(v, torch.zeros_like(steep)).abs().max()) == 0.0  # nothing steep: nothing moves
+
+
+def test_band_correction_weighs_the_band_by_its_gradient_when_asked():
+    scene, model, v, b = _sphere_problem()
+    gt = torch.as_tensor(np.asarray(scene.image, dtype=np.float32))
+    kw = dict(iterations=3, noise_factor=0.0)
+    default = band_correction(model, v, b, scene.geometry, scene.train.angles, weighting="gradient", **kw)
+    ring = band_correction(model, v, b, scene.geometry, scene.train.angles, discretisation=default.discretisation, **kw)
+    assert torch.equal(default.band, ring.band) and float(default.grid[~default.band].abs().max()) == 0.0
+    assert not torch.allclose(default.grid, ring.grid)  # another solve
+    steep = edge_band(v, dilate=0)
+    w = gradient_weights(v, steep)
+    oracle, _ = band_cgls(Projector(scene.geometry, scene.train.angles), b - Projector(scene.geometry, scene.train.angles).forward(v)
+                          - default.discretisation, default.band.float() * w, 3)
+    assert torch.allclose(default.grid, oracle, atol=1e-6)  # CGLS with the gradient weights as columns' scale
+    assert float(((v + default.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
+    with pytest.raises(KneasError, match="correction-weights"):
+        band_correction(model, v, b, scene.geometry, scene.train.angles, weighting="steepest", **kw)
+
+
 def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
     scene, model, v, b = _sphere_problem()
     g = torch.Generator().manual_seed(2)
@@ -346,10 +383,12 @@ def test_a_run_solves_at_the_edges_when_asked_and_reads_the_older_setting(tmp_pa
     from kneas_method.engine.loading import config_from_dict
 
     saved = json.loads((run_dir_of(out) / "config.json").read_text())
-    assert saved["trainer"]["correction_ring"] == 0.0
+    assert saved["trainer"]["correction_ring"] == 0.0 and saved["trainer"]["correction_weights"] == "ring"
+    before = {k: v for k, v in saved["trainer"].items() if k not in ("correction_ring", "correction_weights")}
     for solve, weight in (("edges", 0.0), ("band", 1.0)):  # a 55th-stop config.json: correction_solve band / edges
-        older = {**saved, "trainer": {**{k: v for k, v in saved["trainer"].items() if k != "correction_ring"}, "correction_solve": solve}}
+        older = {**saved, "trainer": {**before, "correction_solve": solve}}
         assert config_from_dict(older, "config.json").trainer.correction_ring == weight
+        assert config_from_dict(older, "config.json").trainer.correction_weights == "ring"
 
 
 def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
@@ -359,3 +398,6 @@ def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     assert code != 0 and "correction_refresh" in err and "Traceback" not in err
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-ring", "2", "--dry-run"], capsys)
     assert code != 0 and "correction_ring" in err and "from 0" in err and "Traceback" not in err
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-weights", "gradient",
+                          "--trainer.correction-ring", "0.5", "--dry-run"], capsys)
+    assert code != 0 and "--trainer.correction-weights ring" in err and "Traceback" not in err  # the ring with the gradient rule
