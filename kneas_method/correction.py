@@ -57,6 +57,7 @@ MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal n
 QUERY_CHUNK = 32768  # points per model query: 2x faster on a CPU than 262144 (cache)
 INTERPOLATION_CHUNK = 1 << 18  # fine points per interpolation of the queried fields
 FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
+RING_WEIGHT = 0.5  # the ring rule's weight of the band's outer ring (56th stop)
 GRADIENT_WEIGHT_CAP = 4.0  # gradient weights: at most sqrt(4) = 2, at 4x the steep voxels' median gradient
 
 
@@ -307,7 +308,7 @@ class Correction:
 @torch.no_grad()
 def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
                     noise_factor: float = 1.5, fine: int = 3, sharpen: float = 2.0,
-                    gradient: float = 0.02, dilate: int = 1, weighting: str = "ring", ring: float = 0.5,
+                    gradient: float = 0.02, dilate: int = 1, weighting: str = "ring", ring: Optional[float] = None,
                     discretisation: Optional[torch.Tensor] = None,
                     projectors: Optional[dict] = None, progress: Optional[Callable[[str], None]] = None) -> Correction:
     """The band correction of a surface ``model`` whose volume at the voxel centres is
@@ -318,7 +319,7 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     at least) where the finer grid would hold more than ``FINE_VOXELS_AT_MOST`` voxels.
     ``weighting``: the CGLS column weights in the band, ``gradient`` (:func:`gradient_weights`)
     or ``ring`` (1 at the steep voxels, ``ring`` on the rest of the band).
-    ``ring``: the CGLS weight of the band's voxels that are not steep themselves (from 0, the
+    ``ring`` (None: ``RING_WEIGHT``, 0.5): the CGLS weight of the band's voxels that are not steep themselves (from 0, the
     steep voxels only, to 1, the whole band alike); the discretisation estimate and the returned
     ``band`` (where the stage fits) are the whole band whatever it is.
     ``projectors``: a dict the caller keeps between passes (empty at first), in which the scene
@@ -336,6 +337,7 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     fine = max(2, min(int(fine), int((FINE_VOXELS_AT_MOST / voxels) ** (1 / 3) + 1e-9)))  # memory: a 256^3 grid gets 2x
     volume = volume.float()
     b = projections.float()
+    ring = RING_WEIGHT if ring is None else float(ring)
     if not 0.0 <= ring <= 1.0:
         raise KneasError(f"the correction's ring weight is {ring!r}; give --trainer.correction-ring a number from 0 (the steep "
                          "voxels only) to 1 (the whole band)")

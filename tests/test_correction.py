@@ -274,16 +274,16 @@ def test_band_correction_weighs_the_band_by_its_gradient_when_asked():
     scene, model, v, b = _sphere_problem()
     gt = torch.as_tensor(np.asarray(scene.image, dtype=np.float32))
     kw = dict(iterations=3, noise_factor=0.0)
-    default = band_correction(model, v, b, scene.geometry, scene.train.angles, weighting="gradient", **kw)
-    ring = band_correction(model, v, b, scene.geometry, scene.train.angles, discretisation=default.discretisation, **kw)
-    assert torch.equal(default.band, ring.band) and float(default.grid[~default.band].abs().max()) == 0.0
-    assert not torch.allclose(default.grid, ring.grid)  # another solve
+    by_gradient = band_correction(model, v, b, scene.geometry, scene.train.angles, weighting="gradient", **kw)
+    ring = band_correction(model, v, b, scene.geometry, scene.train.angles, discretisation=by_gradient.discretisation, **kw)
+    assert torch.equal(by_gradient.band, ring.band) and float(by_gradient.grid[~by_gradient.band].abs().max()) == 0.0
+    assert not torch.allclose(by_gradient.grid, ring.grid)  # another solve
     steep = edge_band(v, dilate=0)
     w = gradient_weights(v, steep)
     oracle, _ = band_cgls(Projector(scene.geometry, scene.train.angles), b - Projector(scene.geometry, scene.train.angles).forward(v)
-                          - default.discretisation, default.band.float() * w, 3)
-    assert torch.allclose(default.grid, oracle, atol=1e-6)  # CGLS with the gradient weights as columns' scale
-    assert float(((v + default.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
+                          - by_gradient.discretisation, by_gradient.band.float() * w, 3)
+    assert torch.allclose(by_gradient.grid, oracle, atol=1e-6)  # CGLS with the gradient weights as columns' scale
+    assert float(((v + by_gradient.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
     with pytest.raises(KneasError, match="correction-weights"):
         band_correction(model, v, b, scene.geometry, scene.train.angles, weighting="steepest", **kw)
 

@@ -55,8 +55,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
         with torch.no_grad():
             result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,
                                      iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
-                                     weighting=t.correction_weights,
-                                     ring=0.5 if t.correction_ring is None else float(t.correction_ring),
+                                     weighting=t.correction_weights, ring=t.correction_ring,
                                      discretisation=None if k % int(t.correction_refresh) == 0 else discretisation,
                                      projectors=projectors,
                                      progress=lambda message: say(f"correction {k + 1}: {message}"))
