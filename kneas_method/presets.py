@@ -37,7 +37,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "lr_decay_at": 0.5, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0},
+                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none"},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
@@ -83,7 +83,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": True, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 128, "num_air_rays": 32},
         "trainer": {"epochs": 80, "prior_epochs": 40, "lr": 1e-3, "lr_decay_at": 0.85, "eval_every": 16, "checkpoint_every": 4, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
-                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 12},
+                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 12, "denoise": "sure"},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "peaks", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },
     "tiny": {
@@ -93,7 +93,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "lr_decay_at": 0.5, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0},
+                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none"},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
 }
@@ -236,6 +236,12 @@ def resolve(config: RunConfig) -> RunConfig:
             raise ConfigError(f"method {config.method!r} has no surfaces, and the band correction sharpens them to model the "
                               "grid's discretisation; drop --trainer.correction-passes or use a surface method such as k-neas")
         trainer = dataclasses.replace(trainer, correction_passes=0)  # the preset's, where it cannot apply
+    if trainer.denoise == "sure" and not (trainer.correction_passes and trainer.correction_iterations):
+        if config.trainer.denoise is not None:
+            raise ConfigError("--trainer.denoise sure smooths the volume at the end of the band correction, and this run has no "
+                              "correction passes; give --trainer.correction-passes 12 (a surface method such as k-neas) or drop "
+                              "--trainer.denoise")
+        trainer = dataclasses.replace(trainer, denoise="none")  # the preset's, where there is no correction stage
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}

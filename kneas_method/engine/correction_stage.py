@@ -4,7 +4,9 @@ After training, ``correct_stage`` runs ``trainer.correction_passes`` passes on t
 model: each computes the band correction ``x`` of the model's volume ``v`` against the training
 projections and fits the model to ``v + x`` inside the band (``Trainer.fit_to_volume``), so the
 field, and with it the surfaces, carries the correction. A pass that stops at the noise level
-before its first iteration ends them. The passes' figures are kept in the checkpoint (rewritten at
+before its first iteration ends them. Then (``trainer.denoise sure``) ``denoise_stage`` smooths the
+model's volume as far as SURE says its own noise allows (``kneas_method.denoise``; nothing on a clean
+scan) and fits the model to it. The passes' and the smoothing's figures are kept in the checkpoint (rewritten at
 the same step), so a resumed run does not redo them and ``load_run`` opens the corrected model.
 """
 
@@ -26,7 +28,8 @@ REQUERY_MARGIN = 1
 
 
 def correct_stage(trainer, scene, config, device) -> Optional[list]:
-    """The band-correction passes of a trained surface model; returns one dict per pass
+    """The band-correction passes of a trained surface model, then its SURE smoothing
+    (``denoise_stage``, kept in ``trainer.denoising``); returns one dict per pass
     (``Correction.to_json``), or None where the run has none."""
     from ..correction import band_correction, grow, requery_band
     from .evaluate import sample_volume
@@ -69,10 +72,36 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
                               float(t.correction_lr), curvature=float(t.correction_curvature))
         say(f"correction {k + 1}: {result.iterations} iterations, residual {result.residuals[0]:.3g} -> {result.residuals[-1]:.3g} "
             f"(noise {result.noise_variance:.3g}); model fitted to the corrected volume, {time.perf_counter() - started:.0f} s so far")
+    done = sum(1 for p in passes if p["iterations"] > 0)
+    say(f"correction: {done} pass{'es' if done != 1 else ''} written into the model in {time.perf_counter() - started:.0f} s"
+        + ("" if done == len(passes) else "; the last found nothing above the data's noise"))
+    if t.denoise == "sure":
+        if passes[-1]["iterations"] > 0:  # the last pass's fit moved the field in its band
+            volume = requery_band(model, scene.geometry, volume, grow(fitted, REQUERY_MARGIN))
+        trainer.denoising = denoise_stage(trainer, volume, config)
     trainer.correction = passes
     trainer.correction_time_s = time.perf_counter() - started
     trainer.save(complete=True)
-    done = sum(1 for p in passes if p["iterations"] > 0)
-    say(f"correction: {done} pass{'es' if done != 1 else ''} written into the model in {trainer.correction_time_s:.0f} s"
-        + ("" if done == len(passes) else "; the last found nothing above the data's noise"))
     return passes
+
+
+def denoise_stage(trainer, volume: torch.Tensor, config) -> dict:
+    """Smooth the corrected model's ``volume`` [nx, ny, nz] as far as SURE says its own noise
+    allows (``kneas_method.denoise``) and fit the model to the result (the passes' fit, in the
+    voxels that carry noise); nothing where no smoothing lowers the estimate. Returns
+    ``Denoising.to_json``."""
+    from ..denoise import sure_gaussian
+
+    t = config.trainer
+    smoothed, choice = sure_gaussian(volume)
+    if choice.sigma == 0:
+        say(f"denoise: no smoothing lowers the estimated error (SURE; noise std {choice.noise_std:.3g}, "
+            f"correlation with a neighbour {choice.neighbour_correlation:.2f}): the volume is left as it is")
+        return choice.to_json()
+    say(f"denoise: Gaussian of {choice.sigma:g} voxel lowers the estimated squared error {choice.sure[0.0]:.4g} -> "
+        f"{choice.sure[choice.sigma]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
+        f"{choice.neighbour_correlation:.2f}); fitting the model to it (--trainer.denoise none skips it)")
+    region = (volume != 0).cpu().numpy()
+    trainer.fit_to_volume(smoothed.clamp_min(0).cpu().numpy(), region, int(t.correction_steps), int(t.correction_points),
+                          float(t.correction_lr), curvature=float(t.correction_curvature))
+    return choice.to_json()

@@ -83,6 +83,10 @@ def config_from_dict(data: Any, where: str):
     if isinstance(trainer, dict) and "warm_start_steps" in trainer and "fit_outside" not in trainer:
         # written before the 59th stop, whose warm start and correction fits queried every draw
         data["trainer"] = dict(trainer, fit_outside="labels")
+    trainer = data.get("trainer")
+    if isinstance(trainer, dict) and "correction_passes" in trainer and "denoise" not in trainer:
+        # written before the 64th stop, whose correction stage ended with the passes: no smoothing
+        data["trainer"] = dict(trainer, denoise="none")
     trainer, model = data.get("trainer"), data.get("model")
     if isinstance(trainer, dict) and "warm_start_steps" in trainer and isinstance(model, dict) \
             and isinstance(model.get("attenuation_options"), dict) and "hidden_dim" not in model["attenuation_options"] \

@@ -142,6 +142,7 @@ class Trainer:
         self.anchor: Optional[Anchor] = None
         self.correction: Optional[list] = None  # the band-correction passes after training (correction_stage)
         self.correction_time_s = 0.0
+        self.denoising: Optional[dict] = None  # the SURE smoothing after the passes (correction_stage.denoise_stage)
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -165,6 +166,7 @@ class Trainer:
                 "num_materials": int(self.model.num_materials),
                 "correction": self.correction,
                 "correction_time_s": float(self.correction_time_s),
+                "denoising": self.denoising,
             },
         }
 
@@ -187,6 +189,7 @@ class Trainer:
         self.complete = bool(extra.get("complete", False))
         self.correction = extra.get("correction")
         self.correction_time_s = float(extra.get("correction_time_s", 0.0))
+        self.denoising = extra.get("denoising")
 
     def resume(self) -> Optional[Path]:
         """Load the newest checkpoint of this stage, if any; returns its path."""
