@@ -35,10 +35,11 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
+from .correction import MAD_TO_STD
+
 __all__ = ["OFFSETS", "SIGMAS", "gaussian_taps", "gaussian_blur", "shifted_pairs", "robust_variance",
            "noise_autocovariance", "sure", "sure_gaussian", "Denoising"]
 
-MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal noise
 OFFSETS = [k for k in itertools.product((-1, 0, 1), repeat=3)]  # the 27 offsets of c(k), (0, 0, 0) among them
 SIGMAS = tuple(round(0.4 + 0.1 * i, 1) for i in range(12))  # 0.4 .. 1.5 voxels: the candidates besides 0
 FAR = 3  # voxels: c(0) from differences this far apart, where the noise is taken as uncorrelated
@@ -97,18 +98,18 @@ def noise_autocovariance(volume: torch.Tensor, mask: torch.Tensor, far: int = FA
     [3, 3, 3], ``c[1 + kx, 1 + ky, 1 + kz]`` (data units squared).
 
     ``c(0)`` is half the robust variance of differences ``far`` voxels apart along each axis (their
-    mean over the three axes), ``c(k) = c(0) - var(v(x) - v(x + k)) / 2`` for the other 26; each is
-    kept within ``[-c(0), c(0)]``."""
+    mean over the three axes), ``c(k) = c(0) - var(v(x) - v(x + k)) / 2`` for the other 26 (each
+    measured once for ``k`` and ``-k``, whose pairs are the same); each is kept within
+    ``[-c(0), c(0)]``."""
     volume = volume.float()
     mask = mask.bool()
     c0 = sum(robust_variance(shifted_pairs(volume, mask, tuple(far if a == axis else 0 for a in range(3))))
              for axis in range(3)) / 6.0
     c = torch.zeros(3, 3, 3, dtype=torch.float64)
-    for k in OFFSETS:
-        if k == (0, 0, 0):
-            c[1, 1, 1] = c0
-            continue
-        c[k[0] + 1, k[1] + 1, k[2] + 1] = min(c0, max(-c0, c0 - robust_variance(shifted_pairs(volume, mask, k)) / 2.0))
+    c[1, 1, 1] = c0
+    for k in OFFSETS[: len(OFFSETS) // 2]:  # the first 13 offsets; c(-k) = c(k): the same pairs, negated
+        value = min(c0, max(-c0, c0 - robust_variance(shifted_pairs(volume, mask, k)) / 2.0))
+        c[1 + k[0], 1 + k[1], 1 + k[2]] = c[1 - k[0], 1 - k[1], 1 - k[2]] = value
     return c
 
 

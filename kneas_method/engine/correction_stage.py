@@ -103,5 +103,6 @@ def denoise_stage(trainer, volume: torch.Tensor, config) -> dict:
         f"{choice.neighbour_correlation:.2f}); fitting the model to it (--trainer.denoise none skips it)")
     region = (volume != 0).cpu().numpy()
     trainer.fit_to_volume(smoothed.clamp_min(0).cpu().numpy(), region, int(t.correction_steps), int(t.correction_points),
-                          float(t.correction_lr), curvature=float(t.correction_curvature))
+                          float(t.correction_lr), curvature=float(t.correction_curvature),
+                          what=f"the volume smoothed by a Gaussian of {choice.sigma:g} voxel")
     return choice.to_json()
