@@ -57,7 +57,7 @@ WarmStart = Literal["none", "fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 EvalProjections = Literal["rendered", "volume"]
 AnchorRegion = Literal["box", "hull"]
 OutsideRule = Literal["labels", "skip"]
-Denoise = Literal["sure", "none"]
+Denoise = Literal["sure", "sure-gaussian", "none"]
 CorrectionWeights = Literal["gradient", "ring"]
 PRESETS: tuple[str, ...] = Preset.__args__
 
@@ -174,16 +174,20 @@ class TrainerConfig:
             (``losses.curvature``: the distances' gradients one voxel apart should agree near a
             surface), so that what the views leave free of an edge is filled with a smooth surface
             rather than the correction's ripples. 0 = the fit's MSE and eikonal term alone.
-        denoise: after the passes, ``sure`` smooths the model's volume with the Gaussian that
+        denoise: after the passes, ``sure`` smooths the model's volume with the filter that
             minimises Stein's unbiased estimate of its squared error (SURE) under the volume's own
             noise, its autocovariance between neighbouring voxels estimated from the volume
-            (``kneas_method.denoise``), and fits the model to it (a pass's fit, in the voxels the
-            model fills); where no Gaussian lowers the estimate (a clean scan, a textured one) the
-            volume is left as it is. ``none``: no smoothing. Runs with the correction stage
-            (``correction_passes`` > 0). None = the preset's (cpu ``sure``; paper and tiny
-            ``none``). Measured (docs/experiments.md, 64th stop): the noisy held-out jaw 32.56 ->
-            34.77 dB (Gaussian of 0.8 voxel); every clean scene and the textured noisy head
-            unchanged (no smoothing chosen).
+            (``kneas_method.denoise``): none, a Gaussian, or an edge-preserving bilateral filter
+            (its SURE by Monte Carlo); then fits the model to it (``denoise_steps`` at
+            ``denoise_lr``, a pass's points and curvature term, in the voxels the model fills).
+            Where no filter lowers the estimate (a clean scan) the volume is left as it is.
+            ``sure-gaussian``: the Gaussians alone (the 64th stop's rule). ``none``: no
+            smoothing. Runs with the correction stage (``correction_passes`` > 0). None = the
+            preset's (cpu ``sure``; paper and tiny ``none``). Measured (docs/experiments.md, 64th
+            and 65th stops): the noisy held-out jaw 32.56 -> 34.77 dB with the Gaussian (0.8
+            voxel), 36.43 dB with the bilateral (3 voxels); every clean scene unchanged (none chosen).
+        denoise_steps / denoise_lr: the fit of the model to the smoothed volume: Adam steps and
+            learning rate (more than a pass's: the whole filled volume moves, not a band).
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -221,6 +225,8 @@ class TrainerConfig:
     correction_points: int = 8192
     correction_curvature: float = 3e-3
     denoise: Optional[Denoise] = None
+    denoise_steps: int = 300
+    denoise_lr: float = 1e-3
     log_every: int = 50
     max_bad_steps: int = 5
 

@@ -212,7 +212,7 @@ def resolve(config: RunConfig) -> RunConfig:
     if not (isinstance(decay, (int, float)) and not isinstance(decay, bool) and 0 <= decay <= 1):
         raise ConfigError(f"trainer.lr_decay_at must be the fraction of the steps after which the rate drops, got {decay!r}; "
                           "give --trainer.lr-decay-at a number from 0 to 1 (0.5: the paper's)")
-    for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points"):
+    for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points", "denoise_steps"):
         value = getattr(trainer, setting)
         if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
             raise ConfigError(f"trainer.{setting} must be a whole number >= 0, got {value!r}")
@@ -220,7 +220,7 @@ def resolve(config: RunConfig) -> RunConfig:
             and trainer.correction_refresh >= 1):
         raise ConfigError(f"trainer.correction_refresh must be a whole number >= 1 (passes between fresh discretisation "
                           f"errors), got {trainer.correction_refresh!r}")
-    for setting in ("correction_noise_factor", "correction_lr", "correction_curvature"):
+    for setting in ("correction_noise_factor", "correction_lr", "correction_curvature", "denoise_lr"):
         value = getattr(trainer, setting)
         if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
             raise ConfigError(f"trainer.{setting} must be a number >= 0, got {value!r}")
@@ -236,7 +236,7 @@ def resolve(config: RunConfig) -> RunConfig:
             raise ConfigError(f"method {config.method!r} has no surfaces, and the band correction sharpens them to model the "
                               "grid's discretisation; drop --trainer.correction-passes or use a surface method such as k-neas")
         trainer = dataclasses.replace(trainer, correction_passes=0)  # the preset's, where it cannot apply
-    if trainer.denoise == "sure" and not (trainer.correction_passes and trainer.correction_iterations):
+    if trainer.denoise in ("sure", "sure-gaussian") and not (trainer.correction_passes and trainer.correction_iterations):
         if config.trainer.denoise is not None:
             raise ConfigError("--trainer.denoise sure smooths the volume at the end of the band correction, and this run has no "
                               "correction passes; give --trainer.correction-passes 12 (a surface method such as k-neas) or drop "

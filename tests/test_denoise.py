@@ -1,6 +1,7 @@
 """SURE-chosen smoothing (kneas_method.denoise): its pure functions against naive oracles (scipy's
-Gaussian, a direct covariance), SURE against the true error on volumes with known noise, the choice
-on clean, noisy and textured volumes, and the stage in a run (metrics, checkpoint, settings)."""
+Gaussian, a direct covariance, a loop-by-loop bilateral filter), SURE (exact and by Monte Carlo)
+against the true error on volumes with known noise, the choice on clean, noisy and textured volumes,
+and the stage in a run (metrics, checkpoint, settings)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import torch
 from scipy import ndimage
 
 from conftest import run, run_dir_of, sphere_scene
-from kneas_method.denoise import (SIGMAS, gaussian_blur, gaussian_taps, noise_autocovariance, robust_variance, shifted_pairs, sure,
-                                  sure_gaussian)
+from kneas_method.denoise import (BILATERAL_TRUNCATE, SIGMAS, bilateral, correlated_noise, gaussian_blur, gaussian_taps,
+                                  monte_carlo_sure, noise_autocovariance, robust_variance, shifted_pairs, sure, sure_smoothing)
 
 
 def _balls(n: int = 64) -> np.ndarray:
@@ -31,6 +32,15 @@ def _correlated_noise(shape, std: float, width: float, seed: int = 0) -> np.ndar
     """Normal noise of standard deviation ``std`` made spatially correlated by a Gaussian of ``width`` voxels."""
     n = ndimage.gaussian_filter(np.random.default_rng(seed).standard_normal(shape), width, mode="wrap")
     return (std * n / n.std()).astype(np.float32)
+
+
+def _direct_autocovariance(noise: np.ndarray) -> np.ndarray:
+    """The noise's own autocovariance at the offsets {-1, 0, 1}^3 (periodic), measured directly: [3, 3, 3]."""
+    noise = noise.astype(np.float64)
+    direct = np.zeros((3, 3, 3))
+    for k in np.ndindex(3, 3, 3):
+        direct[k] = np.mean(noise * np.roll(noise, tuple(-(o - 1) for o in k), axis=(0, 1, 2)))
+    return direct
 
 
 def test_gaussian_blur_matches_scipy():
@@ -65,9 +75,7 @@ def test_noise_autocovariance_matches_the_noise_it_was_given():
     v = noise.copy()
     v[24:] += 0.5  # one edge: the differences across it are few (in a small box of many edges they would bias c)
     c = noise_autocovariance(torch.as_tensor(v), torch.ones(shape, dtype=torch.bool)).numpy()
-    direct = np.zeros((3, 3, 3))  # the noise's own autocovariance, measured directly
-    for k in np.ndindex(3, 3, 3):
-        direct[k] = np.mean(noise * np.roll(noise, tuple(-(o - 1) for o in k), axis=(0, 1, 2)))
+    direct = _direct_autocovariance(noise)
     np.testing.assert_allclose(c, direct, atol=0.1 * direct[1, 1, 1])
     assert c[1, 1, 1] == pytest.approx(0.05 ** 2, rel=0.1) and c[2, 1, 1] > 0.4 * c[1, 1, 1]
 
@@ -84,26 +92,97 @@ def test_sure_tracks_the_true_error_of_each_smoothing():
     assert sure(v, v, 0.0, 10, c) == pytest.approx(10 * float(c[1, 1, 1]))
 
 
-def test_sure_gaussian_smooths_correlated_noise_near_the_best_sigma():
+def _naive_bilateral(v: np.ndarray, sigma: float, range_std: float, guide: np.ndarray) -> np.ndarray:
+    """The separable cross-bilateral filter of ``kneas_method.denoise.bilateral``, voxel by voxel."""
+    r = max(1, int(BILATERAL_TRUNCATE * sigma + 0.5))
+    out = v.astype(np.float64)
+    for axis in range(3):
+        new = np.zeros_like(out)
+        for x in np.ndindex(*v.shape):
+            total = weights = 0.0
+            for j in range(-r, r + 1):
+                y = list(x)
+                y[axis] = min(max(x[axis] + j, 0), v.shape[axis] - 1)  # the border repeated
+                y = tuple(y)
+                w = np.exp(-0.5 * (j / sigma) ** 2) * np.exp(-0.5 * ((guide[y] - guide[x]) / range_std) ** 2)
+                total += w * out[y]
+                weights += w
+            new[x] = total / weights
+        out = new
+    return out
+
+
+def test_bilateral_matches_the_naive_filter_and_keeps_an_edge_a_gaussian_blurs():
+    rng = np.random.default_rng(2)
+    v = rng.random((7, 5, 6)).astype(np.float32)
+    guide = gaussian_blur(torch.as_tensor(v), 0.8)
+    ours = bilateral(torch.as_tensor(v), 1.2, 0.2, guide).numpy()
+    np.testing.assert_allclose(ours, _naive_bilateral(v, 1.2, 0.2, guide.numpy()), atol=1e-5)
+    assert torch.equal(bilateral(torch.as_tensor(v), 0.0, 0.2), torch.as_tensor(v))
+    # a step of 0.5 under noise of 0.05: the bilateral takes the noise out and keeps the step's contrast
+    step = np.zeros((32, 32, 32), np.float32)
+    step[16:] = 0.5
+    noisy = torch.as_tensor(step + _correlated_noise(step.shape, 0.05, 0.5, seed=4))
+    b = bilateral(noisy, 3.0, 0.05).numpy()
+    g = gaussian_blur(noisy, 3.0).numpy()
+    assert np.abs(b - step).mean() < 0.5 * np.abs(noisy.numpy() - step).mean()
+    assert b[17:20].mean() - b[12:15].mean() > 0.45 > g[17:20].mean() - g[12:15].mean()
+
+
+def test_correlated_noise_has_the_covariance_it_was_asked_for():
+    shape = (40, 40, 40)
+    c = noise_autocovariance(torch.as_tensor(_correlated_noise(shape, 0.05, 0.6)), torch.ones(shape, dtype=torch.bool))
+    p = correlated_noise(c, shape, torch.Generator().manual_seed(1)).numpy().astype(np.float64)
+    for k in np.ndindex(3, 3, 3):
+        measured = np.mean(p * np.roll(p, tuple(-(o - 1) for o in k), axis=(0, 1, 2)))
+        assert measured == pytest.approx(float(c[k]), abs=0.08 * float(c[1, 1, 1])), k
+
+
+def test_monte_carlo_sure_equals_the_exact_one_for_a_gaussian_and_tracks_a_bilateral_error():
+    # noise correlated with its neighbours and barely beyond (a Gaussian of 0.5 voxel: 0.02 two voxels apart), as
+    # the covariance model assumes, and that covariance measured on the noise itself: this checks the Monte Carlo
+    # estimate, not the covariance's (SURE's terms cancel: c(0) 13 % high here would shift it by 80 of the 60)
+    clean = _balls()
+    noise = _correlated_noise(clean.shape, 0.05, 0.5, seed=3)
+    v = torch.as_tensor(clean + noise)
+    mask = torch.ones(clean.shape, dtype=torch.bool)
+    c = torch.as_tensor(_direct_autocovariance(noise))
+    region = int(mask.sum())
+    probe = correlated_noise(c, v.shape, torch.Generator().manual_seed(0))
+    smoothed = gaussian_blur(v, 0.8)
+    exact = sure(v, smoothed, 0.8, region, c)
+    assert monte_carlo_sure(v, lambda x: gaussian_blur(x, 0.8), smoothed, probe, region, float(c[1, 1, 1])) == pytest.approx(exact, rel=0.05)
+    std = float(c[1, 1, 1]) ** 0.5
+    for s, k in ((1.5, 1.0), (3.0, 1.0)):
+        smoother = lambda x, s=s, k=k: bilateral(x, s, k * std)
+        smoothed = smoother(v)
+        true = float(((smoothed - torch.as_tensor(clean)) ** 2).sum())
+        assert monte_carlo_sure(v, smoother, smoothed, probe, region, float(c[1, 1, 1])) == pytest.approx(true, rel=0.1), (s, k)
+
+
+def test_sure_smoothing_takes_correlated_noise_out_better_than_any_gaussian():
     clean = _balls()
     noisy = clean + _correlated_noise(clean.shape, 0.05, 0.7, seed=5)
-    smoothed, choice = sure_gaussian(torch.as_tensor(noisy))
-    errors = {s: float(((ndimage.gaussian_filter(noisy, s, mode="nearest") - clean) ** 2).sum()) for s in SIGMAS}
-    best = min(errors, key=errors.get)
-    assert choice.sigma > 0 and abs(choice.sigma - best) <= 0.2, (choice.sigma, best)
-    assert float(((smoothed.numpy() - clean) ** 2).sum()) < 0.8 * float(((noisy - clean) ** 2).sum())
+    smoothed, choice = sure_smoothing(torch.as_tensor(noisy))
+    best_gaussian = min(float(((ndimage.gaussian_filter(noisy, s, mode="nearest") - clean) ** 2).sum()) for s in SIGMAS)
+    assert choice.filter == "bilateral", choice.sure
+    assert float(((smoothed.numpy() - clean) ** 2).sum()) < 0.7 * best_gaussian
     assert choice.neighbour_correlation > 0.4 and choice.region == int((noisy != 0).sum())
-    assert set(choice.to_json()) >= {"sigma_voxels", "noise_std", "neighbour_correlation", "sure"}
+    assert set(choice.to_json()) >= {"filter", "sigma_voxels", "range_noise_stds", "noise_std", "neighbour_correlation", "sure"}
+    # with only Gaussians to choose from, SURE picks one near the truth's best
+    _, gaussian = sure_smoothing(torch.as_tensor(noisy), bilaterals=())
+    errors = {s: float(((ndimage.gaussian_filter(noisy, s, mode="nearest") - clean) ** 2).sum()) for s in SIGMAS}
+    assert gaussian.filter == "gaussian" and abs(gaussian.sigma - min(errors, key=errors.get)) <= 0.2, (gaussian.sigma, errors)
 
 
-def test_sure_gaussian_leaves_a_clean_or_a_textured_volume_as_it_is():
+def test_sure_smoothing_leaves_a_clean_or_a_textured_volume_as_it_is():
     clean = torch.as_tensor(_balls())
-    smoothed, choice = sure_gaussian(clean)
-    assert choice.sigma == 0.0 and torch.equal(smoothed, clean)
+    smoothed, choice = sure_smoothing(clean)
+    assert choice.filter == "none" and torch.equal(smoothed, clean)
     # fine texture (real, in every voxel) with a little white noise: smoothing would take the texture out
     textured = _balls() * (1 + 0.3 * _correlated_noise((64,) * 3, 1.0, 0.6, seed=7)) + _correlated_noise((64,) * 3, 0.002, 0.01, seed=8)
-    _, choice = sure_gaussian(torch.as_tensor(textured))
-    assert choice.sigma == 0.0, choice.sure
+    _, choice = sure_smoothing(torch.as_tensor(textured))
+    assert choice.filter == "none", choice.sure
 
 
 def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
@@ -115,13 +194,14 @@ def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
                                                         noise=True, photons=300.0)), tmp_path / "noisy.pickle")
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
             "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "1", "--trainer.epochs", "4",
-            "--trainer.correction-steps", "10", "--trainer.correction-points", "512", "--trainer.denoise", "sure"]
+            "--trainer.correction-steps", "10", "--trainer.correction-points", "512", "--trainer.denoise", "sure",
+            "--trainer.denoise-steps", "10"]
     code, out, err = run(argv, capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     record = metrics["denoising"]
-    assert record["sigma_voxels"] in (0.0, *SIGMAS) and record["noise_std"] > 0 and "0" in record["sure"]
+    assert record["filter"] in ("none", "gaussian", "bilateral") and record["noise_std"] > 0 and "none" in record["sure"]
     assert "denoise: " in out
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
     assert state["extra"]["denoising"] == record
@@ -141,5 +221,11 @@ def test_denoise_settings_that_cannot_apply_are_refused_and_older_runs_keep_none
     kneas = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="cpu"))
     assert kneas.trainer.denoise == "sure"
     saved = to_dict(kneas)
-    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "denoise"}}  # a run written before it existed
+    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if not k.startswith("denoise")}}  # before it existed
     assert config_from_dict(older, "config.json").trainer.denoise == "none"
+    # the 64th stop's runs: Gaussians alone, fitted with a pass's steps and rate
+    gaussian = config_from_dict({**saved, "trainer": {k: v for k, v in saved["trainer"].items() if not k.startswith("denoise_")}},
+                                "config.json").trainer
+    assert (gaussian.denoise, gaussian.denoise_steps, gaussian.denoise_lr) == ("sure-gaussian", 75, 1e-4)
+    code, out, err = run(["k-neas", "--scene", "foot", "--trainer.denoise-steps", "-3", "--dry-run"], capsys)
+    assert code != 0 and "denoise_steps" in err and "Traceback" not in err

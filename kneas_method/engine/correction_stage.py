@@ -75,7 +75,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     done = sum(1 for p in passes if p["iterations"] > 0)
     say(f"correction: {done} pass{'es' if done != 1 else ''} written into the model in {time.perf_counter() - started:.0f} s"
         + ("" if done == len(passes) else "; the last found nothing above the data's noise"))
-    if t.denoise == "sure":
+    if t.denoise in ("sure", "sure-gaussian"):
         if passes[-1]["iterations"] > 0:  # the last pass's fit moved the field in its band
             volume = requery_band(model, scene.geometry, volume, grow(fitted, REQUERY_MARGIN))
         trainer.denoising = denoise_stage(trainer, volume, config)
@@ -90,14 +90,24 @@ def denoise_stage(trainer, volume: torch.Tensor, config) -> dict:
     allows (``kneas_method.denoise``) and fit the model to the result (the passes' fit, in the
     voxels that carry noise); nothing where no smoothing lowers the estimate. Returns
     ``Denoising.to_json``."""
-    from ..denoise import sure_gaussian
+    from ..denoise import BILATERALS, sure_smoothing
 
     t = config.trainer
-    smoothed, choice = sure_gaussian(volume)
-    if choice.sigma == 0:
+    smoothed, choice = sure_smoothing(volume, bilaterals=BILATERALS if t.denoise == "sure" else ())
+    if choice.filter == "none":
         say(f"denoise: no smoothing lowers the estimated error (SURE; noise std {choice.noise_std:.3g}, "
             f"correlation with a neighbour {choice.neighbour_correlation:.2f}): the volume is left as it is")
         return choice.to_json()
+    what = (f"a Gaussian of {choice.sigma:g} voxel" if choice.filter == "gaussian" else
+            f"a bilateral filter of {choice.sigma:g} voxels and {choice.range_stds:g} noise std")
+    say(f"denoise: {what} lowers the estimated squared error {choice.sure['none']:.4g} -> "
+        f"{choice.sure[choice.label]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
+        f"{choice.neighbour_correlation:.2f}; {choice.seconds:.0f} s); fitting the model to it (--trainer.denoise none skips it)")
+    region = (volume != 0).cpu().numpy()
+    trainer.fit_to_volume(smoothed.clamp_min(0).cpu().numpy(), region, int(t.denoise_steps), int(t.correction_points),
+                          float(t.denoise_lr), curvature=float(t.correction_curvature),
+                          what=f"the volume smoothed by {what}")
+    return choice.to_json()
     say(f"denoise: Gaussian of {choice.sigma:g} voxel lowers the estimated squared error {choice.sure[0.0]:.4g} -> "
         f"{choice.sure[choice.sigma]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
         f"{choice.neighbour_correlation:.2f}); fitting the model to it (--trainer.denoise none skips it)")

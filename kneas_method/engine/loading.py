@@ -87,6 +87,11 @@ def config_from_dict(data: Any, where: str):
     if isinstance(trainer, dict) and "correction_passes" in trainer and "denoise" not in trainer:
         # written before the 64th stop, whose correction stage ended with the passes: no smoothing
         data["trainer"] = dict(trainer, denoise="none")
+    trainer = data.get("trainer")
+    if isinstance(trainer, dict) and "denoise" in trainer and "denoise_steps" not in trainer:
+        # written in the 64th stop: Gaussians alone, fitted as a pass fits
+        data["trainer"] = dict(trainer, denoise="sure-gaussian" if trainer["denoise"] == "sure" else trainer["denoise"],
+                               denoise_steps=trainer.get("correction_steps", 75), denoise_lr=trainer.get("correction_lr", 1e-4))
     trainer, model = data.get("trainer"), data.get("model")
     if isinstance(trainer, dict) and "warm_start_steps" in trainer and isinstance(model, dict) \
             and isinstance(model.get("attenuation_options"), dict) and "hidden_dim" not in model["attenuation_options"] \
