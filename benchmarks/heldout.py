@@ -17,6 +17,9 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
 * ``foot-noisy``, ``chest-noisy``: the built-in foot and chest with the same noise (added in the
   64th stop, after the SURE smoothing was measured on jaw-noisy, to check it on scans it was not
   built on).
+* ``abdomen-noisy``: the built-in abdomen with the same noise (added in the 65th stop, after the
+  bilateral filter's settings were chosen on the four noisy scans above, to check them on one they
+  were not chosen on).
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object
   (not piecewise constant: TV's weak case), projected with the Joseph projector, with noise.
 
@@ -35,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy")
+SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy")
 
 
 def head_phantom():
@@ -89,7 +92,7 @@ def heldout_scene(name: str):
         scene = simulate_phantom(head_phantom(), dataclasses.replace(head, n_voxel=256, voxel_mm=0.8))  # the same box, 8x the voxels
         scene.name = "head-vox256"
         return scene
-    if name in ("jaw-noisy", "foot-noisy", "chest-noisy"):  # a built-in phantom's scan with NAF's detector noise
+    if name in ("jaw-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy"):  # a built-in phantom's scan with NAF's detector noise
         scene = simulate_phantom(name.split("-")[0], SimulationConfig(n_train=50, n_val=10, noise=True))
         scene.name = name
         return scene
