@@ -257,7 +257,7 @@ def sure_smoothing(volume: torch.Tensor, mask: Optional[torch.Tensor] = None, si
             best, best_volume = candidate, smoothed
     if bilaterals and noise_std > 0:
         generator = torch.Generator().manual_seed(seed)
-        probe = (correlated_noise(c, volume.shape, generator) * mask).to(volume.device)
+        probe = correlated_noise(c, volume.shape, generator).to(volume.device) * mask  # drawn on the CPU: the same on any device
         for s, k in bilaterals:
             def smoother(v, s=float(s), k=float(k)):
                 return bilateral(v, s, k * noise_std)

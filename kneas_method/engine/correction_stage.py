@@ -108,11 +108,3 @@ def denoise_stage(trainer, volume: torch.Tensor, config) -> dict:
                           float(t.denoise_lr), curvature=float(t.correction_curvature),
                           what=f"the volume smoothed by {what}")
     return choice.to_json()
-    say(f"denoise: Gaussian of {choice.sigma:g} voxel lowers the estimated squared error {choice.sure[0.0]:.4g} -> "
-        f"{choice.sure[choice.sigma]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
-        f"{choice.neighbour_correlation:.2f}); fitting the model to it (--trainer.denoise none skips it)")
-    region = (volume != 0).cpu().numpy()
-    trainer.fit_to_volume(smoothed.clamp_min(0).cpu().numpy(), region, int(t.correction_steps), int(t.correction_points),
-                          float(t.correction_lr), curvature=float(t.correction_curvature),
-                          what=f"the volume smoothed by a Gaussian of {choice.sigma:g} voxel")
-    return choice.to_json()
