@@ -238,7 +238,7 @@ def resolve(config: RunConfig) -> RunConfig:
         trainer = dataclasses.replace(trainer, correction_passes=0)  # the preset's, where it cannot apply
     if trainer.denoise in ("sure", "sure-gaussian") and not (trainer.correction_passes and trainer.correction_iterations):
         if config.trainer.denoise is not None:
-            raise ConfigError("--trainer.denoise sure smooths the volume at the end of the band correction, and this run has no "
+            raise ConfigError(f"--trainer.denoise {trainer.denoise} smooths the volume at the end of the band correction, and this run has no "
                               "correction passes; give --trainer.correction-passes 12 (a surface method such as k-neas) or drop "
                               "--trainer.denoise")
         trainer = dataclasses.replace(trainer, denoise="none")  # the preset's, where there is no correction stage
