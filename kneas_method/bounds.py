@@ -283,17 +283,9 @@ class GMMBounds:
                                                "k_rule", "min_std")}
 
     # ------------------------------------------------------------------ fit
-    def fit(self, values) -> "GMMBounds":
-        """Fit on attenuation samples (any shape, numpy or torch), data units.
-
-        Raises:
-            KneasError: when fewer than 50 values lie above the air threshold
-                (the prior model looks empty), or boundaries cannot be made
-                strictly increasing.
-        """
-        from sklearn.mixture import GaussianMixture
-
-        self._check_settings()
+    def _keep(self, values) -> np.ndarray:
+        """The finite values above the air threshold (sets ``n_values_``, ``air_threshold_``,
+        ``n_kept_``); one-line KneasError when none or too few are."""
         if hasattr(values, "detach"):
             values = values.detach().cpu().numpy()
         x = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -312,6 +304,27 @@ class GMMBounds:
             raise KneasError(
                 f"only {kept.size} of {x.size} attenuation values lie above the air threshold {self.air_threshold_:.4g}: "
                 "the prior model looks empty — train the single-material prior longer, lower air_threshold, or give bounds by hand")
+        return kept
+
+    def fit(self, values, fallback=None) -> "GMMBounds":
+        """Fit on attenuation samples (any shape, numpy or torch), data units.
+
+        Args:
+            values: the samples.
+            fallback: under the ``peaks`` rule, the values the mixtures are fitted on when
+                ``values``' histogram has fewer than two peaks (e.g. the same volume after an
+                edge-preserving filter, which flattens noise into plateaus), or a function of no
+                arguments that returns them (called only then); None = ``values`` themselves.
+
+        Raises:
+            KneasError: when fewer than 50 values lie above the air threshold
+                (the prior model looks empty), or boundaries cannot be made
+                strictly increasing.
+        """
+        from sklearn.mixture import GaussianMixture
+
+        self._check_settings()
+        kept = self._keep(values)
         self.warnings_: list[str] = []
         self.k_rule_used_ = "given" if self.n_components is not None else self.k_rule
         self.peaks_ = []
@@ -322,7 +335,11 @@ class GMMBounds:
             self.peaks_ = [float(v) for v in peaks * unit]
             if peaks.size >= 2:
                 return self._adopt_peaks(kept, unit, peaks * unit, valleys * unit)
-            self.k_rule_used_ = f"bic-valleys (the histogram has {peaks.size} peak{'s' if peaks.size != 1 else ''})"
+            count = f"the histogram has {peaks.size} peak{'s' if peaks.size != 1 else ''}"
+            self.k_rule_used_ = f"bic-valleys ({count})"
+            if fallback is not None:
+                kept = self._keep(fallback() if callable(fallback) else fallback)
+                self.k_rule_used_ = f"bic-valleys on the fallback values ({count})"
         rng = np.random.default_rng(self.random_state)
         if kept.size > self.max_samples:
             kept = rng.choice(kept, size=self.max_samples, replace=False)

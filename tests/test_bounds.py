@@ -341,3 +341,60 @@ def test_peaks_rule_plot_and_bad_method(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ConfigError, match="peaks"):
         GMMBounds(k_rule="peaks", method="quantile").fit(tv_spikes(n=50_000))
+
+
+def test_peaks_rule_fits_the_fallback_values_only_when_the_histogram_has_fewer_than_two_peaks(fitted):
+    values, _ = fitted  # three clear peaks: the fallback is not even computed
+
+    def never():
+        raise AssertionError("the fallback was computed although the histogram has three peaks")
+
+    gb = GMMBounds(max_components=6, k_rule="peaks").fit(values, fallback=never)
+    assert gb.k_rule_used_ == "peaks" and gb.n_components_ == 3
+    rng = np.random.default_rng(0)  # one peak (as in the test above): the mixtures are fitted to the fallback values
+    smeared = np.concatenate([rng.normal(0.2, 0.12, 40000), rng.normal(0.6, 0.15, 10000)])
+    smeared = smeared[smeared > 0.01]
+    gb = GMMBounds(max_components=6, k_rule="peaks").fit(smeared, fallback=lambda: values)
+    assert gb.k_rule_used_ == "bic-valleys on the fallback values (the histogram has 1 peak)" and len(gb.peaks_) == 1
+    ref = GMMBounds(max_components=6, k_rule="bic-valleys").fit(values)
+    np.testing.assert_array_equal(gb.boundaries_, ref.boundaries_)
+    assert gb.n_kept_ == ref.n_kept_
+
+
+def noisy_nested_spheres(n=48, noise=0.1, seed=0):
+    """A ball of 0.2 holding a ball of 0.5 and one of 0.9, in air, plus noise correlated over about a
+    voxel (a Gaussian-blurred white noise of std ``noise``), clipped at 0 as a reconstruction is:
+    (levels [3], clean [n, n, n], noisy [n, n, n] float32)."""
+    from scipy import ndimage
+
+    g = (np.arange(n) - (n - 1) / 2) / (n / 2)
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    v = np.where(np.sqrt(x ** 2 + y ** 2 + z ** 2) < 0.85, 0.2, 0.0)
+    v = np.where(np.sqrt((x - 0.25) ** 2 + y ** 2 + z ** 2) < 0.45, 0.5, v)
+    v = np.where(np.sqrt((x + 0.4) ** 2 + y ** 2 + z ** 2) < 0.25, 0.9, v)
+    w = ndimage.gaussian_filter(np.random.default_rng(seed).normal(0, 1, v.shape), 1.0)
+    return np.array([0.2, 0.5, 0.9]), v, np.clip(v + w * noise / w.std(), 0, None).astype(np.float32)
+
+
+@pytest.mark.parametrize("noise", [0.1, 0.12])
+def test_bounds_of_a_noisy_volume_after_the_edge_preserving_filter_keep_each_level_inside_a_material(noise):
+    """The bounds stage's fallback (a histogram with one peak): the mixtures fitted to the volume
+    after ``histogram_smoothing`` put each of the three levels in a material of its own, well inside
+    it; fitted to the raw noisy values, a boundary falls on the lowest level (0.2), splitting it."""
+    from kneas_method.engine.bounds_stage import histogram_smoothing
+
+    levels, _, noisy = noisy_nested_spheres(noise=noise)
+    raw = GMMBounds(max_components=6, k_rule="peaks").fit(noisy)
+    smoothed = GMMBounds(max_components=6, k_rule="peaks").fit(noisy, fallback=lambda: histogram_smoothing(noisy))
+    assert smoothed.k_rule_used_.startswith("bic-valleys on the fallback values")
+
+    def margin(b):
+        return np.abs(levels[:, None] - b[None, 1:-1]).min()
+
+    which = np.searchsorted(smoothed.boundaries_, levels) - 1
+    assert np.unique(which).size == 3, np.round(smoothed.boundaries_, 3)
+    assert margin(smoothed.boundaries_) > 0.05, np.round(smoothed.boundaries_, 3)
+    assert margin(raw.boundaries_) < 0.03, np.round(raw.boundaries_, 3)
+    out = histogram_smoothing(torch.from_numpy(noisy))  # torch in, numpy out, same values
+    np.testing.assert_allclose(out, histogram_smoothing(noisy), atol=1e-6)
+    assert out.shape == noisy.shape and out.dtype == np.float32

@@ -242,7 +242,18 @@ def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
     assert result.K == 2 and result.details["k_chosen_by"] == "peaks" and "histogram peaks" in result.source
     assert 0.3 < result.betas[1] < 0.8 and result.details["gmm"]["peaks"] == pytest.approx([0.3, 0.8], abs=0.004)
     assert result.details["first_label_threshold"] == pytest.approx(0.15, abs=0.002)  # half material 1's level
-    assert (tmp_path / "figures" / "gmm_bounds.png").is_file()
+    assert (tmp_path / "figures" / "gmm_bounds.png").is_file() and result.details["smoothed"] is None
+    # a noisy volume (one peak): the mixtures are fitted after the bilateral filter, and the run's bounds say so
+    from test_bounds import noisy_nested_spheres
+
+    levels, _, noisy = noisy_nested_spheres()
+    noisy_cfg = dataclasses.replace(cfg, bounds_max_materials=6, bounds_gmm_restarts=1)
+    result = estimate_bounds(noisy_cfg, sphere_scene(), tmp_path, torch.device("cpu"), volume=noisy)
+    assert result.details["smoothed"] == {"filter": "bilateral", "sigma_voxels": 3.0, "range_fraction": 0.1}
+    assert result.details["k_chosen_by"] == "bic-valleys on the ASD-POCS after a bilateral filter (the histogram has 1 peak)"
+    assert result.source == "gmm (gmm) on the ASD-POCS"
+    boundaries = np.array(result.details["gmm"]["boundaries"])
+    assert np.unique(np.searchsorted(boundaries, levels)).size == 3  # each level in a material of its own
 
 
 @pytest.mark.parametrize("name", ["paper", "cpu", "tiny"])

@@ -33,6 +33,25 @@ from .run_dir import safe_name, write_json
 
 PRIOR_METHOD = "neas-1m"
 PRIOR_FOLDER = "neas-1m-prior"
+# The peaks rule's fallback (a histogram with fewer than two peaks: a noisy or textured volume): the
+# mixtures are fitted to the volume after a bilateral filter of this width (voxels) and range (a
+# fraction of the volume's 99.5th percentile), which flattens the noise inside each material into a
+# plateau and keeps the edges of more contrast than the range (66th stop; docs/experiments.md).
+FALLBACK_SIGMA = 3.0
+FALLBACK_RANGE = 0.1
+
+
+def histogram_smoothing(volume) -> np.ndarray:
+    """[nx, ny, nz] (numpy or torch, data units) -> float32 numpy [nx, ny, nz]: the volume after
+    ``denoise.bilateral`` with ``FALLBACK_SIGMA`` voxels and a range of ``FALLBACK_RANGE`` times its
+    99.5th percentile, for the bounds' histogram only (the warm start and the anchor keep the volume)."""
+    import torch
+
+    from ..denoise import bilateral
+
+    v = volume.detach().float().cpu() if isinstance(volume, torch.Tensor) else torch.from_numpy(np.asarray(volume, dtype=np.float32))
+    top = float(np.percentile(v.numpy(), 99.5))
+    return bilateral(v, FALLBACK_SIGMA, FALLBACK_RANGE * top).numpy()
 
 
 @dataclass
@@ -212,15 +231,26 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     else:
         say(f"bounds: fitting Gaussian mixtures ({'K = ' + str(K) if K is not None else f'K = 1..{config.bounds_max_materials}'}, "
             f"{config.bounds_gmm_restarts} start(s) each) to the {what} voxel values", markup=False)
+    smoothed = []
+
+    def fallback():  # the peaks rule found fewer than two peaks (a noisy or textured volume)
+        say(f"bounds: the {what} voxel values' histogram has fewer than two peaks; the mixtures are fitted to the volume after "
+            f"an edge-preserving filter (bilateral, {FALLBACK_SIGMA:g} voxels, range {FALLBACK_RANGE:g} x its 99.5th percentile)",
+            markup=False)
+        smoothed.append(histogram_smoothing(volume))
+        return smoothed[0]
+
     gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
                     max_components=int(config.bounds_max_materials), k_rule=config.bounds_k_rule,
-                    min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(volume)
+                    min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(volume, fallback=fallback)
+    if smoothed:
+        gmm.k_rule_used_ = gmm.k_rule_used_.replace("the fallback values", f"the {what} after a bilateral filter")
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
     if config.bounds_k_rule == "peaks":
         peaks = f"histogram peaks at {', '.join(f'{v:.4g}' for v in gmm.peaks_) or 'none'}"
-        rule = peaks + ("" if gmm.gmm_ is None else f"; fewer than two, so the {rule}")
+        rule = peaks + ("" if gmm.gmm_ is None else f"; fewer than two, so the {rule}" + (" after the filter" if smoothed else ""))
     chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else f"({rule}" + ("" if gmm.gmm_ is None else ": " + ", ".join(
         f"K={k}: {v:.4g}" + ("" if gmm.placeable_.get(k, True) else " no valley") for k, v in sorted(gmm.bic_.items()))) + ")")
     how = "histogram peaks" if gmm.gmm_ is None else f"GMM ({config.bounds_method})"
@@ -231,6 +261,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     say(f"bounds: {how} on {gmm.n_kept_:,} {what} voxel values in {time.perf_counter() - t0:.0f} s, {chosen}; "
         f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
     details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else gmm.k_rule_used_,
+               "smoothed": {"filter": "bilateral", "sigma_voxels": FALLBACK_SIGMA, "range_fraction": FALLBACK_RANGE} if smoothed else None,
                "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,
                "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
     if gmm.gmm_ is None:  # the peaks rule: material 1's labels start half way from air to its level
