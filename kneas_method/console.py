@@ -9,8 +9,10 @@ from __future__ import annotations
 
 from rich.console import Console
 
-console = Console(stderr=False, highlight=False)
-err_console = Console(stderr=True, highlight=False)
+# soft_wrap: no line is broken at the console's width (80 columns when output goes to a file or a
+# pipe), so every command's paths stay whole; tables still fit the width.
+console = Console(stderr=False, highlight=False, soft_wrap=True)
+err_console = Console(stderr=True, highlight=False, soft_wrap=True)
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130

@@ -73,8 +73,8 @@ class TrainerConfig:
         lr: Adam learning rate (paper 1e-3; None = the preset's).
         lr_decay_at: fraction of epochs after which the rate is multiplied by
             ``lr_decay_factor`` (paper 0.5 -> after 500 of 1000 epochs; factor 0.1; None = the preset's).
-        eval_every / checkpoint_every: epochs between held-out evaluations /
-            checkpoints (0 = only at the end).
+        eval_every: epochs between held-out evaluations during training (0 = only at the end).
+        checkpoint_every: epochs between checkpoints (0 = only at the end).
         eval_chunk: rays per chunk when rendering full views for evaluation.
         eval_views: held-out views scored at intermediate evaluations (None = all).
         eval_projections: how the final evaluation, and the intermediate ones, make the
@@ -168,8 +168,10 @@ class TrainerConfig:
             this factor of the data's noise variance (estimated from the residual; the discrepancy
             principle), so a noisy scan is not fitted to its noise (1.5: on the noisy held-out scans
             the residual is within 1.01 of its noise estimate before the first pass).
-        correction_steps / correction_lr / correction_points: the fit of each pass: Adam steps,
-            learning rate and band voxel centres per step (and a quarter as many anywhere).
+        correction_steps: Adam steps of each pass's fit of the model to the corrected volume.
+        correction_lr: learning rate of each pass's fit.
+        correction_points: band voxel centres per step of each pass's fit (and a quarter as many
+            anywhere); the smoothing's fit uses as many.
         correction_curvature: weight of a surface-smoothness term in each pass's fit
             (``losses.curvature``: the distances' gradients one voxel apart should agree near a
             surface), so that what the views leave free of an edge is filled with a smooth surface
@@ -186,8 +188,9 @@ class TrainerConfig:
             preset's (cpu ``sure``; paper and tiny ``none``). Measured (docs/experiments.md, 64th
             and 65th stops): the noisy held-out jaw 32.56 -> 34.77 dB with the Gaussian (0.8
             voxel), 36.43 dB with the bilateral (3 voxels); every clean scene unchanged (none chosen).
-        denoise_steps / denoise_lr: the fit of the model to the smoothed volume: Adam steps and
-            learning rate (more than a pass's: the whole filled volume moves, not a band).
+        denoise_steps: Adam steps of the fit of the model to the smoothed volume (more than a
+            pass's: the whole filled volume moves, not a band).
+        denoise_lr: learning rate of that fit.
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).

@@ -82,15 +82,20 @@ class ModelConfig(InstantiateConfig):
         num_materials: K (signed distance fields / attenuation heads).
         s_init: initial sharpness of ``Omega(d, s) = sigmoid(-s d)`` (1/model unit);
             None = the preset's (paper: 20).
-        alphas, betas: attenuation bounds per material, data units (1/m); None =
+        alphas: per material, the width of its attenuation range, data units (1/m); None =
             placeholders (NeAS wide bounds for K = 1) until ``set_bounds``.
+        betas: per material, the lower end of its attenuation range, data units (1/m); None =
+            placeholders, as for ``alphas``.
         ray_sampler: ``kneas.samplers`` name of the ray sampler.
-        num_samples / num_eval_samples: points per ray in training (stratified,
-            jittered) / evaluation (even) with the ``bins`` quadrature; paper 320 / 128.
+        num_samples: points per ray in training (stratified, jittered) with the ``bins``
+            quadrature; paper 320; None = the preset's.
+        num_eval_samples: points per ray in evaluation (even) with the ``bins`` quadrature;
+            paper 128; None = the preset's.
         floater: use the floater loss on air rays.
         floater_fraction: fraction of epochs with the floater loss on (0.2).
-        lambda_floater, lambda_eikonal: ``λ_aux`` (0.1), ``λ_reg`` (paper 0.01; None =
-            the preset's: the cpu preset's short schedule uses a much smaller one).
+        lambda_floater: weight of the floater loss, ``λ_aux`` (0.1).
+        lambda_eikonal: weight of the eikonal term, ``λ_reg`` (paper 0.01; None = the preset's:
+            the cpu preset's short schedule uses a much smaller one).
         eikonal_mode: ``autograd`` (exact) or ``finite-difference``; None =
             autograd, or finite-difference with the tinycudann hash grid.
         eikonal_fraction: fraction of the training sample points the eikonal term

@@ -140,6 +140,40 @@ def _fill(obj, values: dict[str, Any]):
     return dataclasses.replace(obj, **changes) if changes else obj
 
 
+# Numeric settings checked before any work starts: (section, setting, whole number?, lowest, lowest allowed?).
+# A setting the run leaves at None is the preset's or unused, and is not checked.
+NUMBER_RULES = (
+    ("model", "num_samples", True, 1, True), ("model", "num_eval_samples", True, 1, True),
+    ("model", "s_init", False, 0, False), ("model", "lambda_eikonal", False, 0, True),
+    ("model", "eikonal_fraction", False, 0, False), ("model", "eikonal_fd_step", False, 0, False),
+    ("model", "floater_fraction", False, 0, True), ("model", "lambda_floater", False, 0, True),
+    ("model", "occupancy_resolution", True, 1, True),
+    ("trainer", "lr", False, 0, False), ("trainer", "lr_decay_factor", False, 0, False),
+    ("trainer", "eval_every", True, 0, True), ("trainer", "checkpoint_every", True, 0, True),
+    ("trainer", "eval_chunk", True, 1, True), ("trainer", "eval_views", True, 1, True),
+    ("trainer", "log_every", True, 1, True), ("trainer", "max_bad_steps", True, 0, True),
+    ("datamanager", "num_object_rays", True, 0, True), ("datamanager", "num_air_rays", True, 0, True),
+)
+
+
+def check_numbers(config) -> None:
+    """One-line ConfigError for the first setting of :data:`NUMBER_RULES` out of its range (a
+    count below 1, a learning rate of 0, ...), named as its command-line flag."""
+    for section, name, whole, lowest, inclusive in NUMBER_RULES:
+        value = getattr(getattr(config, section), name, None)
+        if value is None:
+            continue
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if whole:
+            number = number and float(value).is_integer()
+        if not (number and (value >= lowest if inclusive else value > lowest)):
+            what = ("a whole number >= " if whole else "a number >= " if inclusive else "a number > ") + f"{lowest:g}"
+            raise ConfigError(f"--{section}.{name.replace('_', '-')} must be {what}, got {value!r}")
+    rays = config.datamanager
+    if rays.num_object_rays is not None and rays.num_air_rays is not None and rays.num_object_rays + rays.num_air_rays < 1:
+        raise ConfigError("--datamanager.num-object-rays and --datamanager.num-air-rays are both 0; give at least one ray per step")
+
+
 def validate_choices(config: RunConfig) -> RunConfig:
     """Every setting checked against its type (``Literal`` choices included); a one-line
     ConfigError names the first that does not fit."""
@@ -244,6 +278,7 @@ def resolve(config: RunConfig) -> RunConfig:
         trainer = dataclasses.replace(trainer, denoise="none")  # the preset's, where there is no correction stage
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
+    check_numbers(dataclasses.replace(config, model=model, trainer=trainer, datamanager=_fill(config.datamanager, table["datamanager"])))
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}
     stages = [("--trainer.epochs", trainer.epochs)]
     if automatic_bounds(config) and run["bounds_volume"] == "prior":
@@ -282,7 +317,8 @@ def procedure_notes(config: TrainConfig) -> list[str]:
     if not isinstance(config, TrainConfig):
         return notes
     if automatic_bounds(config) and config.bounds_volume != "prior":
-        how = ("from the peaks of the {v} reconstruction's histogram (a GMM on it where it has fewer than two), not from"
+        how = ("from the peaks of the {v} reconstruction's histogram (where it has fewer than two, a GMM on it after an "
+               "edge-preserving filter), not from"
                if config.bounds_k_rule == "peaks" and k_from_data(config) else "the GMM is fitted on the {v} reconstruction, not on")
         notes.append(f"bounds: {how.format(v=config.bounds_volume.upper())} a trained NeAS-1M prior "
                      "(an option beside the paper's procedure; --bounds-volume prior for the paper's)")
@@ -291,7 +327,7 @@ def procedure_notes(config: TrainConfig) -> list[str]:
             or config.bounds_gmm_restarts != 1):
         peaks = config.bounds_k_rule == "peaks"
         notes.append(("materials: one per peak of the volume's histogram, boundaries at its valleys, material 1's labels from half "
-                      "its peak; if the histogram has fewer than two peaks, " if peaks else "materials: ")
+                      "its peak; if the histogram has fewer than two peaks, fitted to the volume after a bilateral filter, " if peaks else "materials: ")
                      + f"K = 1..{config.bounds_max_materials} by "
                      + ("the lowest BIC whose boundaries are all density valleys" if config.bounds_k_rule != "bic" else "BIC")
                      + (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")

@@ -64,3 +64,22 @@ def test_eval_user_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     # without config.json a folder cannot be resumed either (kneas-train --resume needs it): no --resume hint
     assert "config.json" in err and "not a kneas run folder" in err and "--resume" not in err
+
+
+def test_eval_of_a_run_with_damaged_checkpoints_says_how_to_get_it_back(run_dir, tmp_path, capsys):
+    """A finished run (metrics.json) cannot be resumed, so its damaged checkpoints send the user to
+    train it again from its config; an unfinished one is resumed."""
+    import shutil
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(run_dir, damaged)
+    for ckpt in (damaged / "checkpoints").glob("*.ckpt"):
+        ckpt.write_bytes(ckpt.read_bytes()[:100])
+    assert _cli([str(damaged), "--no-figures"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "only damaged checkpoints" in err and f"kneas-train --config {damaged}/config.json" in err and "--resume" not in err
+    assert len(err.splitlines()) == 1
+    (damaged / "metrics.json").unlink()
+    assert _cli([str(damaged), "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert f"kneas-train --resume {damaged}" in err and "--config" not in err

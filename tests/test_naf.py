@@ -272,3 +272,11 @@ def test_hand_crafted_protocol0_global(tmp_path):
     with pytest.raises(SceneError, match=r"asks for os\.system"):
         load_naf(tmp_path / "raw.pickle")
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("start, kind", [(b"\x89PNG\r\n\x1a\n", "PNG image"), (b"\x93NUMPY\x01\x00", "NumPy .npy"),
+                                         (b"\x1f\x8b\x08\x00", "gzip")])
+def test_another_kind_of_file_named_pickle_is_named(tmp_path, start, kind):
+    (tmp_path / "scan.pickle").write_bytes(start + bytes(64))
+    with pytest.raises(SceneError, match=rf"scan.pickle is a {kind}.* file, not a scene pickle; .*kneas-data import"):
+        load_naf(tmp_path / "scan.pickle")

@@ -15,18 +15,20 @@ Backprojector = Literal["auto", "voxel", "matched"]
 
 @dataclass
 class ReconstructionOptions:
-    """Attributes:
-    filter: FDK ramp-filter window.
-    iterations: iterations of the iterative methods (None: the algorithm's default:
-        sart 5, os-sart 10, cgls 30, asd-pocs 10).
-    relaxation: SART-family relaxation λ in (0, 2] (None: sart 0.5, os-sart / asd-pocs 1.0).
-    subsets: OS-SART subsets (ASD-POCS: None = one view per update, as SART).
-    positivity: clamp the volume at 0 after every SART-family update (ASD-POCS always does).
-    backprojector: the iterative methods' back-projector: ``auto`` (from the geometry: voxel-driven
-        when detector pixels at the isocentre are at least a voxel wide, else matched), ``voxel``
-        (voxel-driven, as RTK's defaults) or ``matched`` (the projector's exact adjoint).
-    tv_steps: ASD-POCS total-variation descent steps per iteration.
-    tv_alpha: ASD-POCS first TV step as a fraction of the first data step (the TV weight).
+    """Settings of the classical reconstructions.
+
+    Attributes:
+        filter: FDK ramp-filter window.
+        iterations: iterations of the iterative methods (None: the algorithm's default:
+            sart 5, os-sart 10, cgls 30, asd-pocs 10).
+        relaxation: SART-family relaxation λ in (0, 2] (None: sart 0.5, os-sart / asd-pocs 1.0).
+        subsets: OS-SART subsets (ASD-POCS: None = one view per update, as SART).
+        positivity: clamp the volume at 0 after every SART-family update (ASD-POCS always does).
+        backprojector: the iterative methods' back-projector: ``auto`` (from the geometry: voxel-driven
+            when detector pixels at the isocentre are at least a voxel wide, else matched), ``voxel``
+            (voxel-driven, as RTK's defaults) or ``matched`` (the projector's exact adjoint).
+        tv_steps: ASD-POCS total-variation descent steps per iteration.
+        tv_alpha: ASD-POCS first TV step as a fraction of the first data step (the TV weight).
     """
 
     filter: FdkFilter = "ram-lak"

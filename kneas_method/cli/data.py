@@ -76,8 +76,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--centre-detector", action="store_true", help="put the detector centre at u = v = 0 (files without an origin; offsets then come from the XML)")
     m.add_argument("--name", default=None, help="scene name (default: the geometry file's stem)")
 
-    i = sub.add_parser("inspect", help="describe a scene pickle and draw a projection and slices")
-    i.add_argument("scene", metavar="SCENE.pickle")
+    i = sub.add_parser("inspect", help="describe a scene (pickle or built-in name) and draw a projection and slices")
+    i.add_argument("scene", metavar="SCENE", help="scene pickle or built-in scene name")
     i.add_argument("--png", default=None, metavar="OUT.png", help="write a figure of one projection and the middle slices")
 
     e = sub.add_parser("export", help="write a scene for RTK: projections .mha + RTK geometry XML")
@@ -158,6 +158,10 @@ def _output_file(output: str, example: str) -> Path:
     out = Path(output)
     if out.is_dir():
         raise ConfigError(f"-o {out} is a directory; give a file name such as {out / example}")
+    suffix = Path(example).suffix
+    if out.suffix.lower() != suffix:
+        raise ConfigError(f"-o {out}: the file written is a scene {suffix}; give a name ending in {suffix}, such as "
+                          f"{out.with_suffix(suffix) if out.suffix else out.parent / (out.name + suffix)}")
     check_writable(out.parent, needed_bytes=0, flag="-o")
     return out
 
@@ -205,7 +209,7 @@ def _export(args) -> int:
     from ..data.rtk_export import export_rtk
     from ..data.scenes import resolve_scene
 
-    scene = resolve_scene(args.scene)
+    scene = resolve_scene(args.scene, flag="SCENE")
     info = export_rtk(scene, args.rtk, views=args.views)
     say = lambda msg: console.print(msg, soft_wrap=True, markup=False)  # noqa: E731
     say(f"wrote {info['n_projections']} {args.views} projections of {scene.name} for RTK to {args.rtk}")
@@ -226,9 +230,9 @@ def _range(arr) -> str:
 
 
 def _inspect(args) -> int:
-    from ..data.naf import load_naf
+    from ..data.scenes import resolve_scene
 
-    scene = load_naf(args.scene)
+    scene = resolve_scene(args.scene, flag="SCENE")
     g = scene.geometry.to_mm()
     c = console
     c.print(f"[bold]{args.scene}[/]  (scene '{scene.name}', mode {g['mode']})")

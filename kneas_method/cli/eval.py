@@ -48,6 +48,7 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
     """``(metrics dict, projections [N, nV, nU], volume [nx, ny, nz] or None)`` of a loaded run."""
     from ..engine.evaluate import evaluate_model, evaluate_volume
 
+    _say(f"held-out views and volume: {len(run.scene.val)} views, {run.scene.geometry.n_voxel} voxels")
     if run.model is None:
         metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True)
     else:
@@ -56,7 +57,7 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
         from ..evaluation.surfaces import material_metrics
 
         metrics["materials"] = material_metrics(run.model, run.scene, factor=grid_factor, air_threshold=air_threshold,
-                                                surfaces=surfaces and run.scene.membership is not None)
+                                                surfaces=surfaces and run.scene.membership is not None, progress=_say)
     elif run.scene.labels is not None and vol is not None:
         from ..evaluation.surfaces import volume_material_metrics
 

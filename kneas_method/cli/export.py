@@ -94,7 +94,7 @@ def _mesh(args) -> int:
     out = output_folder(run.run_dir, args.output, "export")
     t0 = time.perf_counter()
     res = export_meshes(run, out, resolution=args.resolution, fmt=args.format, min_fragment=args.min_fragment,
-                        thresholds=args.threshold, surface=args.surface, chunk=args.chunk)
+                        thresholds=args.threshold, surface=args.surface, chunk=args.chunk, progress=_say)
     for note in res.notes:
         _say(f"note: {note}")
     nx, ny, nz = res.resolution

@@ -70,6 +70,8 @@ def parse_args(argv: Sequence[str]):
         start = read_config_file(config_file)
     else:
         start = None
+    if any(token == "--method" or token.startswith("--method=") for token in argv):
+        raise ConfigError("the method is the subcommand (kneas-train METHOD [options]); drop --method")
     specs = registry.methods()
     defaults = {name: dataclasses.replace(spec.config, method=name) for name, spec in specs.items()}
     descriptions = {name: spec.description for name, spec in specs.items()}
@@ -80,7 +82,9 @@ def parse_args(argv: Sequence[str]):
         elif resume is not None and argv[0] in defaults and argv[0] != start.method:
             raise ConfigError(f"--resume {resume} is a {start.method} run; drop the method name {argv[0]!r}")
     config = tyro_cli(defaults, descriptions, argv, prog="kneas-train", what="method",
-                      description="Train a kneas method (subcommand = registered method).")
+                      description="Train a kneas method (subcommand = registered method). Two more forms: "
+                                  "kneas-train --config FILE [METHOD] [options] starts from a saved config.json (a run's, "
+                                  "or your own); kneas-train --resume RUN_DIR continues an interrupted run.")
     if resume is not None:
         config = resume_config(resume, config)
     return config

@@ -112,6 +112,12 @@ class _SafeUnpickler(pickle.Unpickler):
         raise SceneError(f"{self._label} is not a plain-data scene pickle: it uses persistent ids, which kneas refuses to load")
 
 
+# The first bytes of files that are sometimes given where a scene pickle belongs (none is a valid pickle start).
+FILE_SIGNATURES = ((b"\x89PNG", "PNG image"), (b"\xff\xd8\xff", "JPEG image"), (b"II*\x00", "TIFF image"), (b"MM\x00*", "TIFF image"),
+                   (b"\x1f\x8b", "gzip (e.g. .nii.gz)"), (b"PK\x03\x04", "zip (e.g. .npz)"), (b"\x93NUMPY", "NumPy .npy"),
+                   (b"\x89HDF", "HDF5"), (b"%PDF", "PDF"))
+
+
 def safe_load_pickle(path) -> Any:
     """Unpickle ``path`` allowing only plain data (dicts, lists, numbers, strings, numpy arrays/dtypes/scalars)."""
     path = Path(path)
@@ -126,9 +132,13 @@ def safe_load_pickle(path) -> Any:
         raise SceneError(f"{path}: cannot read it ({exc.strerror or exc}); check the file's permissions") from None
     try:
         return _SafeUnpickler(io.BytesIO(data), label).load()
-    except SceneError:
-        raise
-    except Exception as exc:  # UnpicklingError, EOFError, ValueError, ...
+    except Exception as exc:  # UnpicklingError, EOFError, ValueError, a refused global, ...
+        kind = next((k for magic, k in FILE_SIGNATURES if data.startswith(magic)), None)
+        if kind is not None:  # another kind of file renamed or mistaken for a scene
+            raise SceneError(f"{label} is a {kind} file, not a scene pickle; give a NAF scene .pickle, or make one from a scan: "
+                             "kneas-data import PROJECTIONS --geometry geometry.xml -o scan.pickle") from None
+        if isinstance(exc, SceneError):
+            raise
         msg = " ".join(str(exc).split()) or type(exc).__name__
         from .scanner_import import IMAGE_SUFFIXES
 

@@ -82,6 +82,7 @@ def resolve_scene(
     data_dir="data",
     cache_dir=None,
     progress: Optional[Callable[[str], None]] = None,
+    flag: str = "--scene",
 ) -> Scene:
     """Turn ``--scene`` into a :class:`Scene`.
 
@@ -91,12 +92,13 @@ def resolve_scene(
         cache_dir: where simulated built-in scenes are cached (default
             ``$KNEAS_CACHE`` or ``~/.cache/kneas/scenes``).
         progress: optional ``progress(message)`` while a built-in scene is simulated.
+        flag: how a refusal names the argument (:func:`check_scene_spec`).
 
     Returns:
         The scene; ``scene.source`` says where it came from.
     """
     spec = str(spec)
-    check_scene_spec(spec)
+    check_scene_spec(spec, flag)
     path = Path(spec).expanduser()
     if path.is_file():
         scene = load_naf(path)
@@ -110,9 +112,11 @@ def resolve_scene(
     return builtin_scene(spec, cache_dir=cache_dir, progress=progress)
 
 
-def check_scene_spec(spec) -> None:
+def check_scene_spec(spec, flag: str = "--scene") -> None:
     """Refuse, without loading anything, a ``--scene`` that :func:`resolve_scene` would refuse:
     neither an existing file nor a built-in name (so a command can say so before any other work).
+
+    ``flag`` names the argument in the message (``--scene``, or ``SCENE`` for a positional one).
 
     Raises:
         SceneError: naming the closest built-in scene, or that a directory was given.
@@ -123,12 +127,12 @@ def check_scene_spec(spec) -> None:
     if path.is_file() or spec in names:
         return
     if path.is_dir():
-        raise SceneError(f"--scene {spec} is a directory; give a NAF .pickle file or a built-in scene ({', '.join(names)})")
+        raise SceneError(f"{flag} {spec} is a directory; give a NAF .pickle file or a built-in scene ({', '.join(names)})")
     import difflib
 
     close = difflib.get_close_matches(spec, names, n=1, cutoff=0.6)
     raise SceneError(
-        f"--scene {spec!r} is neither an existing file nor a built-in scene"
+        f"{flag} {spec!r} is neither an existing file nor a built-in scene"
         + (f"; did you mean {close[0]}?" if close else "")
         + f" (built-in: {', '.join(names)}; or the path of an existing NAF .pickle file)"
     )

@@ -73,10 +73,12 @@ def _announce(msg: str) -> None:
 
 @dataclass
 class CTDataManagerConfig(InstantiateConfig):
-    """Attributes:
-    pixel_sampler: ``kneas.samplers`` name of the pixel sampler.
-    num_object_rays / num_air_rays: rays per step from object / air pixels
-        (paper 512 / 128); None = the preset's.
+    """Rays per training step.
+
+    Attributes:
+        pixel_sampler: ``kneas.samplers`` name of the pixel sampler.
+        num_object_rays: rays per step through object pixels (paper 512); None = the preset's.
+        num_air_rays: rays per step through air pixels (paper 128); None = the preset's.
     """
 
     _target = "kneas_method.datamanagers.ct:CTDataManager"

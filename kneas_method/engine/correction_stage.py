@@ -41,7 +41,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     if trainer.correction is not None:
         say(f"correction: already done for this run ({len(trainer.correction)} passes, checkpoint {trainer.last_checkpoint})")
         return trainer.correction
-    say(f"correction: up to {t.correction_passes} passes of what the {len(scene.train)} training views still say, in a band "
+    say(f"correction: up to {t.correction_passes} pass{'es' if t.correction_passes != 1 else ''} of what the {len(scene.train)} training views still say, in a band "
         f"around the edges (at most {t.correction_iterations} CGLS iterations each), written into the model "
         "(--trainer.correction-passes 0 skips it)")
     started = time.perf_counter()
@@ -106,5 +106,5 @@ def denoise_stage(trainer, volume: torch.Tensor, config) -> dict:
     region = (volume != 0).cpu().numpy()
     trainer.fit_to_volume(smoothed.clamp_min(0).cpu().numpy(), region, int(t.denoise_steps), int(t.correction_points),
                           float(t.denoise_lr), curvature=float(t.correction_curvature),
-                          what=f"the volume smoothed by {what}")
+                          what=f"the volume smoothed by {what}", stage="denoise")
     return choice.to_json()

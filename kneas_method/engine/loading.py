@@ -32,6 +32,13 @@ import torch
 from ..errors import CheckpointError, KneasError, SceneError
 
 RESUME_HINT = "training must finish, or be resumed with `kneas-train --resume {run}`"
+RETRAIN_HINT = "the run finished (metrics.json) but its files are gone or damaged, so it cannot be resumed; train it again with `kneas-train --config {run}/config.json`"
+
+
+def missing_hint(run_dir: Path) -> str:
+    """What to do about a run folder whose volume or checkpoints are missing or damaged: resume an
+    unfinished run; train a finished one again from its config (a finished run is not resumed)."""
+    return (RETRAIN_HINT if (Path(run_dir) / "metrics.json").is_file() else RESUME_HINT).format(run=run_dir)
 
 # settings that ``--resume`` may change: they do not change what is trained
 RESUME_SAFE = ("device", "resume", "dry_run", "trainer.eval_chunk")
@@ -395,7 +402,7 @@ def load_run(
     if not isinstance(config, TrainConfig):  # a classical run: its volume
         vol_path = run_dir / "volume.npy"
         if not vol_path.is_file():
-            raise KneasError(f"{config.method} run {run_dir} has no volume.npy; " + RESUME_HINT.format(run=run_dir))
+            raise KneasError(f"{config.method} run {run_dir} has no volume.npy; " + missing_hint(run_dir))
         try:
             volume = np.load(vol_path, allow_pickle=False).astype(np.float32, copy=False)
         except (OSError, ValueError) as exc:
@@ -410,12 +417,12 @@ def load_run(
     else:
         folder = run_dir / "checkpoints"
         if not list_checkpoints(folder):
-            raise KneasError(f"{run_dir} has no checkpoint in checkpoints/; " + RESUME_HINT.format(run=run_dir))
+            raise KneasError(f"{run_dir} has no checkpoint in checkpoints/; " + missing_hint(run_dir))
         try:
             state, ckpt_path, skipped = load_latest_checkpoint(folder, method=config.method, map_location="cpu")
         except CheckpointError as exc:
             if "no complete checkpoint" in str(exc):
-                raise KneasError(f"{run_dir} has only damaged checkpoints; " + RESUME_HINT.format(run=run_dir)) from None
+                raise KneasError(f"{run_dir} has only damaged checkpoints; " + missing_hint(run_dir)) from None
             raise
         notes += [f"skipped {s}" for s in skipped]
 

@@ -324,12 +324,14 @@ class Trainer:
         return values
 
     def fit_to_volume(self, volume: np.ndarray, mask: np.ndarray, steps: int, points_per_step: int, lr: float,
-                      curvature: float = 0.0, what: str = "the corrected volume in the band") -> None:
+                      curvature: float = 0.0, what: str = "the corrected volume in the band",
+                      stage: str = "correction") -> None:
         """Fit the trained model to ``volume`` (data units, the scene's grid) for ``steps`` Adam steps
         at ``lr``: each on ``points_per_step`` voxel centres inside ``mask`` [nx, ny, nz] (bool) and a
         quarter as many anywhere, loss = MSE of ``mu`` + the eikonal term (``CTModel.volume_loss_dict``)
         + ``curvature`` x the surface-smoothness term (``losses.curvature``; 0 = none).
-        ``what``: the target, as the progress bar names it.
+        ``what``: the target, as the progress bar names it; ``stage``: ``correction`` or ``denoise``, the
+        stage it belongs to (the progress bar's label, and the flag a failure names to skip it).
         Seeded from the run's seed and the step; the training optimiser and RNG are untouched."""
         points, targets = self._voxel_targets(volume, "correction")
         inside = torch.as_tensor(np.asarray(mask).reshape(-1), device=self.device).nonzero()[:, 0]
@@ -343,8 +345,9 @@ class Trainer:
             return torch.cat([inside[torch.randint(0, len(inside), (n,), generator=gen).to(self.device)],
                               torch.randint(0, len(points), (n // 4,), generator=gen).to(self.device)])
 
-        self._fit_steps(points, targets, draw, int(steps), float(lr), 0.0, f"{self.label} correction fit",
-                        f"fit to {what}", "use --trainer.correction-passes 0",
+        skip = "use --trainer.denoise none" if stage == "denoise" else "use --trainer.correction-passes 0"
+        self._fit_steps(points, targets, draw, int(steps), float(lr), 0.0, f"{self.label} {stage} fit",
+                        f"fit to {what}", skip,
                         curvature=float(curvature), generator=gen)
         self.model.eval()
 

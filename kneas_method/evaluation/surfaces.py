@@ -60,8 +60,9 @@ voxel (the smallest voxel side, mm; :func:`metrics.fscore`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -305,6 +306,7 @@ def material_metrics(
     air_threshold: float = DEFAULT_AIR_THRESHOLD,
     chunk: int = DEFAULT_CHUNK,
     surfaces: bool = True,
+    progress: Optional[Callable[[str], None]] = None,
 ) -> dict[str, Any]:
     """Per-material label Dice and surface errors of an SDF model (module docs).
 
@@ -315,6 +317,7 @@ def material_metrics(
         factor: fine-grid factor for the surfaces (2 = twice the voxel resolution).
         air_threshold: total weight below which a point is air.
         surfaces: also compute Chamfer/F-score (needs ``scene.membership``).
+        progress: called with one line as each phase starts (None: silent).
 
     Returns:
         JSON-able dict: ``matching`` (per predicted material: GT label, name, mean
@@ -327,6 +330,8 @@ def material_metrics(
         raise KneasError("material metrics need a model with signed distance fields; NAF/FDK volumes have no materials")
     _check_labels(scene)
     geo = scene.geometry
+    say = progress or (lambda line: None)
+    say(f"materials: the model's labels at the {math.prod(geo.n_voxel):,} voxel centres")
     q = query_grid(model, geo, keys=("mu", "weights", "mu_materials"), chunk=chunk)
     if "weights" not in q:
         raise KneasError("the model's query gives no material weights; it has no materials")
@@ -342,7 +347,7 @@ def material_metrics(
                   "e_k = max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm")
     settings = {"air_threshold": float(air_threshold), "grid_factor": int(factor)}
     return _score_materials(scene, pred, mean_mu, visible if surfaces else None, fine=factor, definition=definition,
-                            settings=settings)
+                            settings=settings, progress=say)
 
 
 def threshold_labels(volume, boundaries: Sequence[float], air_cut: float) -> np.ndarray:
@@ -410,7 +415,7 @@ def _check_labels(scene) -> None:
 
 
 def _score_materials(scene, pred: np.ndarray, mean_mu: np.ndarray, fields, *, fine: int, definition: str, settings: dict,
-                     field_geometry=None) -> dict[str, Any]:
+                     field_geometry=None, progress: Optional[Callable[[str], None]] = None) -> dict[str, Any]:
     """Dice (and, with ``fields(geometry) -> [..., K]`` signed fields, Chamfer / F-score) of
     predicted labels ``pred`` (0 air, 1..K) whose classes have mean attenuation ``mean_mu [K]``.
     The fields are sampled on ``field_geometry`` (default: the scene's grid refined by ``fine``)."""
@@ -439,12 +444,15 @@ def _score_materials(scene, pred: np.ndarray, mean_mu: np.ndarray, fields, *, fi
         "materials": per,
     }
     if fields is not None:
+        say = progress or (lambda line: None)
         fgeo = fine_geometry(geo, fine)
         pgeo = field_geometry or fgeo
+        say(f"surfaces: the signed distances on the {fine}x grid ({math.prod(pgeo.n_voxel):,} points) and the exact membership")
         e = fields(pgeo)
         gt_fine = membership_grid(scene, fgeo)
         for m in range(1, M + 1):
             entry = per[names[m - 1]]
+            say(f"surfaces: {names[m - 1]} ({m}/{M}), marching cubes and distances")
             ks = [k for k in range(K) if matching[k] == m]
             gt_pts = surface_points_from_labels(gt_fine == m, fgeo)
             pred_pts = _sdf_surface_points(np.min(e[..., ks], axis=-1), pgeo) if ks else np.zeros((0, 3))

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -382,9 +382,11 @@ def export_meshes(
     thresholds: Optional[Sequence[float]] = None,
     surface: str = "raw",
     chunk: int = 65536,
+    progress: Optional[Callable[[str], None]] = None,
 ) -> MeshExport:
     """Extract and write one mesh per material (or threshold) plus a combined mesh
-    coloured by material, into ``out_dir``. See the module docs.
+    coloured by material, into ``out_dir``. See the module docs. ``progress`` is called with one
+    line as each phase starts (None: silent).
 
     Returns a :class:`MeshExport` with the counts and watertightness per mesh
     (also written as ``meshes.json`` by the CLI).
@@ -397,6 +399,8 @@ def export_meshes(
         raise KneasError(f"--min-fragment must be >= 0 (triangles, or a fraction < 1), got {min_fragment}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda line: None)
+    say(f"mesh: the run's fields on a grid of {resolution} cells along the box's longest side")
     grid, fields, kind = sample_fields(run, resolution, surface=surface, chunk=chunk)
     mm = grid.mm_per_unit
     result = MeshExport(resolution=tuple(grid.n_voxel), cell_mm=tuple(float(d) * mm for d in grid.d_voxel), kind=kind)
@@ -435,6 +439,7 @@ def export_meshes(
         result.notes.append("vertices in the scanner's world (RTK/ITK LPS, mm), where kneas-export volume's .mha and "
                             "RTK's reconstruction of the same data lie")
     for i, (name, f, level, inside_negative, source) in enumerate(jobs):
+        say(f"mesh: {name} ({i + 1}/{len(jobs)}), marching cubes and checks")
         mesh, extractor = isosurface(f, grid, level, inside_negative=inside_negative)
         if mesh is not None and world is not None:
             mesh.transform(world)
