@@ -306,7 +306,7 @@ class GMMBounds:
                 "the prior model looks empty — train the single-material prior longer, lower air_threshold, or give bounds by hand")
         return kept
 
-    def fit(self, values, fallback=None) -> "GMMBounds":
+    def fit(self, values, fallback=None, fallback_name: str = "the fallback values") -> "GMMBounds":
         """Fit on attenuation samples (any shape, numpy or torch), data units.
 
         Args:
@@ -315,6 +315,7 @@ class GMMBounds:
                 ``values``' histogram has fewer than two peaks (e.g. the same volume after an
                 edge-preserving filter, which flattens noise into plateaus), or a function of no
                 arguments that returns them (called only then); None = ``values`` themselves.
+            fallback_name: what the fallback values are, as ``k_rule_used_`` names them.
 
         Raises:
             KneasError: when fewer than 50 values lie above the air threshold
@@ -339,7 +340,7 @@ class GMMBounds:
             self.k_rule_used_ = f"bic-valleys ({count})"
             if fallback is not None:
                 kept = self._keep(fallback() if callable(fallback) else fallback)
-                self.k_rule_used_ = f"bic-valleys on the fallback values ({count})"
+                self.k_rule_used_ = f"bic-valleys on {fallback_name} ({count})"
         rng = np.random.default_rng(self.random_state)
         if kept.size > self.max_samples:
             kept = rng.choice(kept, size=self.max_samples, replace=False)

@@ -242,9 +242,8 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
 
     gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
                     max_components=int(config.bounds_max_materials), k_rule=config.bounds_k_rule,
-                    min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(volume, fallback=fallback)
-    if smoothed:
-        gmm.k_rule_used_ = gmm.k_rule_used_.replace("the fallback values", f"the {what} after a bilateral filter")
+                    min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(
+        volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
@@ -254,7 +253,8 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else f"({rule}" + ("" if gmm.gmm_ is None else ": " + ", ".join(
         f"K={k}: {v:.4g}" + ("" if gmm.placeable_.get(k, True) else " no valley") for k, v in sorted(gmm.bic_.items()))) + ")")
     how = "histogram peaks" if gmm.gmm_ is None else f"GMM ({config.bounds_method})"
-    gmm.plot(Path(run_dir) / "figures" / "gmm_bounds.png", title=f"{scene.name}: attenuation bounds ({how}), K = {gmm.n_components_}")
+    gmm.plot(Path(run_dir) / "figures" / "gmm_bounds.png", title=f"{scene.name}: attenuation bounds ({how}"
+             + (", the volume after a bilateral filter" if smoothed else "") + f"), K = {gmm.n_components_}")
     mu_needed = _line_integral_check(gmm, scene, what)
     for w in gmm.warnings_:
         say(f"[yellow]bounds warning:[/] {w}")
