@@ -33,6 +33,10 @@ def test_no_checkpoint_is_named(run_dir, capsys, main, prefix):
     shutil.rmtree(run_dir / "checkpoints")
     (run_dir / "checkpoints").mkdir()
     assert _exit(main, prefix + [str(run_dir)]) == 2
+    err = capsys.readouterr().err  # a finished run (metrics.json) is trained again from its config, not resumed
+    assert "no checkpoint" in err and f"kneas-train --config {run_dir}/config.json" in err and "Traceback" not in err
+    (run_dir / "metrics.json").unlink()  # an unfinished run is resumed
+    assert _exit(main, prefix + [str(run_dir)]) == 2
     err = capsys.readouterr().err
     assert "no checkpoint" in err and "--resume" in err and "Traceback" not in err
 
@@ -42,6 +46,10 @@ def test_only_damaged_checkpoints_are_named(run_dir, capsys, main, prefix):
     for ckpt in (run_dir / "checkpoints").glob("*.ckpt"):
         data = ckpt.read_bytes()
         ckpt.write_bytes(data[: len(data) // 3])
+    assert _exit(main, prefix + [str(run_dir)]) == 2
+    err = capsys.readouterr().err
+    assert "damaged" in err and f"kneas-train --config {run_dir}/config.json" in err and "Traceback" not in err
+    (run_dir / "metrics.json").unlink()
     assert _exit(main, prefix + [str(run_dir)]) == 2
     err = capsys.readouterr().err
     assert "damaged" in err and "--resume" in err and "Traceback" not in err
