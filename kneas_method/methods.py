@@ -108,16 +108,16 @@ class TrainerConfig:
         anchor_outside: what the ``box`` anchor does with its draws outside the model's occupancy
             grid, where ``mu`` is 0 whatever the field (so their value term has no gradient):
             ``labels`` queries the field there for their label term (keeping every distance
-            positive where the volume is empty anyway, the default before the 58th stop);
+            positive where the volume is empty anyway, the earlier default);
             ``skip`` (default) leaves them out and queries the field only at the draws inside the
             grid: its value term and its gradient are the same, and the anchor's cost falls by the
             share of the box outside the grid (training 16 % shorter on jaw, about a quarter on
-            abdomen; the four built-in scenes within −0.06 to +0.05 dB; docs/experiments.md, 58th stop).
+            abdomen; the four built-in scenes within −0.06 to +0.05 dB; docs/experiments.md).
         fit_outside: the same rule for the other fits to a volume, the warm start and the
             correction passes' fits (``Trainer._fit_steps``): ``skip`` (default) queries the
             field only at their draws inside the occupancy grid, with every mean over all the
             draws, so the value term's gradient is unchanged and the draws outside add no label,
-            eikonal or curvature term; ``labels`` queries every draw (before the 59th stop).
+            eikonal or curvature term; ``labels`` queries every draw (the earlier default).
         anchor_occupancy: weight, inside the anchor, of the warm start's per-material occupancy
             cross-entropy (``CTModel.occupancy_loss``): the prior keeps the labels the volume's
             values give under the bounds, not only its values. Where two materials' ranges meet
@@ -143,14 +143,14 @@ class TrainerConfig:
             that finds nothing above the noise ends them. 0 = off; None = the preset's (paper and
             tiny 0; cpu 12).
         correction_iterations: CGLS iterations per pass at most (4: with the ring at half weight, 4
-            instead of 3 gained abdomen +0.14 dB, docs/experiments.md, 56th stop).
+            instead of 3 gained abdomen +0.14 dB, docs/experiments.md).
         correction_weights: the column weights of each pass's CGLS in the band (``x = M z``: a
             voxel of weight ``w`` moves as if its unknown were ``w`` times less free). ``ring`` (the
             default): 1 at the steep voxels and ``correction_ring`` on the rest of the band;
             ``gradient``: the square root of the volume's gradient magnitude over its median on the
             band's steep voxels, at most 2 (at most 4 times that median), so the correction goes
-            where the edges are steepest. Measured against ``ring`` (docs/experiments.md, 63rd
-            stop): abdomen +0.30 dB, jaw -0.16, but abdomen's bones' surfaces worse (cortical Dice
+            where the edges are steepest. Measured against ``ring`` (docs/experiments.md):
+            abdomen +0.30 dB, jaw -0.16, but abdomen's bones' surfaces worse (cortical Dice
             0.925 -> 0.911, below the best thresholded classical volume's 0.916), so not the default.
         correction_ring: with ``correction_weights ring`` (None = 0.5; refused with
             ``gradient``), the weight of the band's voxels that are
@@ -158,8 +158,8 @@ class TrainerConfig:
             0 at the steep voxels only (about half the unknowns); between, the ring's share of the
             correction is damped (column scaling). The discretisation estimate and the fit use the
             whole band whatever it is, so the fit holds the ring near the model's volume. Measured
-            in docs/experiments.md (56th stop), against 1: 0.5 chest +0.26, abdomen +0.17, foot +0.03,
-            jaw 0.00 dB; 0 chest +0.42, abdomen +0.17, foot -0.03, jaw -0.05 (55th stop).
+            in docs/experiments.md, against 1: 0.5 chest +0.26, abdomen +0.17, foot +0.03,
+            jaw 0.00 dB; 0 chest +0.42, abdomen +0.17, foot -0.03, jaw -0.05.
         correction_refresh: the discretisation error is computed afresh every this many passes
             and reused in between (1 = every pass): it moves little from one pass to the next, and
             computing it (the model queried on a finer grid) is the dearest part of a pass (3: the
@@ -183,10 +183,10 @@ class TrainerConfig:
             (its SURE by Monte Carlo); then fits the model to it (``denoise_steps`` at
             ``denoise_lr``, a pass's points and curvature term, in the voxels the model fills).
             Where no filter lowers the estimate (a clean scan) the volume is left as it is.
-            ``sure-gaussian``: the Gaussians alone (the 64th stop's rule). ``none``: no
+            ``sure-gaussian``: the Gaussians alone (the earlier rule). ``none``: no
             smoothing. Runs with the correction stage (``correction_passes`` > 0). None = the
-            preset's (cpu ``sure``; paper and tiny ``none``). Measured (docs/experiments.md, 64th
-            and 65th stops): the noisy held-out jaw 32.56 -> 34.77 dB with the Gaussian (0.8
+            preset's (cpu ``sure``; paper and tiny ``none``). Measured (docs/experiments.md): the
+            noisy held-out jaw 32.56 -> 34.77 dB with the Gaussian (0.8
             voxel), 36.43 dB with the bilateral (3 voxels); every clean scene unchanged (none chosen).
         denoise_steps: Adam steps of the fit of the model to the smoothed volume (more than a
             pass's: the whole filled volume moves, not a band).

@@ -120,8 +120,8 @@ class ModelConfig(InstantiateConfig):
             to half the first material's peak: its material 1 reaches up to the valley before the
             next material, so ``alpha_1 / 2`` can lie above material 1's own level.
         compile: ``torch.compile`` the fused SDF pass (values + distance gradients).
-            Opt-in: measured on 2 CPU cores (cpu preset, torch 2.13; docs/experiments.md,
-            58th stop) a training step with its anchor ran 15-18 % faster, but each new
+            Opt-in: measured on 2 CPU cores (cpu preset, torch 2.13; docs/experiments.md)
+            a training step with its anchor ran 15-18 % faster, but each new
             batch size costs a compile of 25-30 s with an empty inductor cache (3 s with a
             warm one) and a run meets at least three (warm start, training, the passes'
             fits), so a whole run on a fresh machine is slower than without it.
