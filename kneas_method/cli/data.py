@@ -209,7 +209,7 @@ def _export(args) -> int:
     from ..data.rtk_export import export_rtk
     from ..data.scenes import resolve_scene
 
-    scene = resolve_scene(args.scene, flag="SCENE")
+    scene = resolve_scene(args.scene, flag="SCENE", progress=lambda msg: console.print(msg, soft_wrap=True, markup=False))
     info = export_rtk(scene, args.rtk, views=args.views)
     say = lambda msg: console.print(msg, soft_wrap=True, markup=False)  # noqa: E731
     say(f"wrote {info['n_projections']} {args.views} projections of {scene.name} for RTK to {args.rtk}")
@@ -232,7 +232,7 @@ def _range(arr) -> str:
 def _inspect(args) -> int:
     from ..data.scenes import resolve_scene
 
-    scene = resolve_scene(args.scene, flag="SCENE")
+    scene = resolve_scene(args.scene, flag="SCENE", progress=lambda msg: console.print(msg, soft_wrap=True, markup=False))
     g = scene.geometry.to_mm()
     c = console
     c.print(f"[bold]{args.scene}[/]  (scene '{scene.name}', mode {g['mode']})")
