@@ -278,7 +278,8 @@ def resolve(config: RunConfig) -> RunConfig:
         trainer = dataclasses.replace(trainer, denoise="none")  # the preset's, where there is no correction stage
     if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
         raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
-    check_numbers(dataclasses.replace(config, model=model, trainer=trainer, datamanager=_fill(config.datamanager, table["datamanager"])))
+    datamanager = _fill(config.datamanager, table["datamanager"])
+    check_numbers(dataclasses.replace(config, model=model, trainer=trainer, datamanager=datamanager))
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}
     stages = [("--trainer.epochs", trainer.epochs)]
     if automatic_bounds(config) and run["bounds_volume"] == "prior":
@@ -306,7 +307,7 @@ def resolve(config: RunConfig) -> RunConfig:
         **run,
         num_materials=K,
         model=model,
-        datamanager=_fill(config.datamanager, table["datamanager"]),
+        datamanager=datamanager,
         trainer=trainer,
     )
 
