@@ -11,7 +11,15 @@ def test_run_dir_layout_and_unique(tmp_path):
     a = run_dir.create_run_dir(tmp_path, "foot", "k-neas")
     b = run_dir.create_run_dir(tmp_path, "foot", "k-neas")
     assert a != b and a.parent == tmp_path / "foot" / "k-neas"
-    assert (a / "checkpoints").is_dir() and (a / "figures").is_dir()
+    assert (a / "figures").is_dir() and not (a / "checkpoints").exists()  # made by the first checkpoint
+
+
+def test_first_checkpoint_makes_its_folder(tmp_path):
+    from kneas_method.engine.checkpoint import list_checkpoints, save_checkpoint
+
+    run = run_dir.create_run_dir(tmp_path, "foot", "k-neas")
+    path = save_checkpoint(run / "checkpoints", {"step": 7, "method": "k-neas"})
+    assert path.parent == run / "checkpoints" and list_checkpoints(run / "checkpoints") == [path]
 
 
 def test_unwritable_output_reported_before_training(tmp_path):

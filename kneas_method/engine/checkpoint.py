@@ -49,7 +49,10 @@ def atomic_torch_save(obj: Any, path: str | Path) -> Path:
 
 
 def save_checkpoint(folder: str | Path, state: dict, *, keep: int = 2) -> Path:
-    """Write ``state`` (must contain ``step`` and ``method``) and prune to the newest ``keep``."""
+    """Write ``state`` (must contain ``step`` and ``method``) into ``folder`` (made on the first
+    checkpoint, so runs without one, the classical methods', have no empty ``checkpoints/``) and
+    prune to the newest ``keep``."""
+    Path(folder).mkdir(parents=True, exist_ok=True)
     state = {"format": CHECKPOINT_FORMAT, "kneas_version": __version__, **state}
     path = atomic_torch_save(state, checkpoint_path(folder, int(state["step"])))
     for old in list_checkpoints(folder)[:-keep]:

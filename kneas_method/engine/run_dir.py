@@ -3,7 +3,7 @@
 Layout of a run folder::
 
     config.json        the resolved TrainConfig (``kneas-train --config`` re-runs it)
-    checkpoints/       step-XXXXXXXX.ckpt (atomic, weights-only)
+    checkpoints/       step-XXXXXXXX.ckpt (atomic, weights-only; neural methods only)
     metrics.json       final metrics (SPEC §5) and run facts
     bounds.json        attenuation bounds used (methods with bounds)
     figures/           PNGs: loss curves, projections, slices, GMM fit
@@ -59,7 +59,8 @@ def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES, flag:
 
 
 def create_run_dir(output_dir: str | Path, scene: str, method: str, needed_bytes: int = MIN_FREE_BYTES) -> Path:
-    """A new, empty run folder ``output_dir/<scene>/<method>/<timestamp>[-N]``."""
+    """A new run folder ``output_dir/<scene>/<method>/<timestamp>[-N]`` holding an empty ``figures/``
+    (``checkpoints/`` is made by the first checkpoint)."""
     parent = check_writable(Path(output_dir) / safe_name(scene) / safe_name(method), needed_bytes)
     base = timestamp()
     for n in range(1000):
@@ -68,7 +69,6 @@ def create_run_dir(output_dir: str | Path, scene: str, method: str, needed_bytes
             run.mkdir()
         except FileExistsError:
             continue
-        (run / "checkpoints").mkdir()
         (run / "figures").mkdir()
         return run
     raise KneasError(f"could not create a new run folder under {parent}")
