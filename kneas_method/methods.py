@@ -191,6 +191,14 @@ class TrainerConfig:
         denoise_steps: Adam steps of the fit of the model to the smoothed volume (more than a
             pass's: the whole filled volume moves, not a band).
         denoise_lr: learning rate of that fit.
+        materials_refit_steps: where the bounds came from the peaks rule's fallback (the start's
+            histogram had fewer than two peaks: a noisy scan), after the smoothing the same
+            mixtures are fitted again to the trained volume after the same bilateral filter
+            (``engine.materials_stage``); if they find more materials than the start did, the
+            model is replaced by a fresh one with those bounds, fitted to the trained volume as the
+            warm start fits, for this many steps. The start's noise hides materials that the
+            trained, smoothed volume shows (the noisy foot's marrow, the noisy abdomen's bones).
+            0 = off. Measured in docs/experiments.md.
         log_every: steps between loss-history / learning-rate records.
         max_bad_steps: this many non-finite losses in a row end the run (the last
             good checkpoint is kept).
@@ -230,6 +238,7 @@ class TrainerConfig:
     denoise: Optional[Denoise] = None
     denoise_steps: int = 300
     denoise_lr: float = 1e-3
+    materials_refit_steps: int = 1500
     log_every: int = 50
     max_bad_steps: int = 5
 

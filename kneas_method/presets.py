@@ -246,7 +246,8 @@ def resolve(config: RunConfig) -> RunConfig:
     if not (isinstance(decay, (int, float)) and not isinstance(decay, bool) and 0 <= decay <= 1):
         raise ConfigError(f"trainer.lr_decay_at must be the fraction of the steps after which the rate drops, got {decay!r}; "
                           "give --trainer.lr-decay-at a number from 0 to 1 (0.5: the paper's)")
-    for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points", "denoise_steps"):
+    for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points", "denoise_steps",
+                    "materials_refit_steps"):
         value = getattr(trainer, setting)
         if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
             raise ConfigError(f"trainer.{setting} must be a whole number >= 0, got {value!r}")
@@ -328,7 +329,10 @@ def procedure_notes(config: TrainConfig) -> list[str]:
             or config.bounds_gmm_restarts != 1):
         peaks = config.bounds_k_rule == "peaks"
         notes.append(("materials: one per peak of the volume's histogram, boundaries at its valleys, material 1's labels from half "
-                      "its peak; if the histogram has fewer than two peaks, fitted to the volume after a bilateral filter, " if peaks else "materials: ")
+                      "its peak; if the histogram has fewer than two peaks, fitted to the volume after a bilateral filter"
+                      + (" (and after training to the trained volume after that filter, whose extra materials replace the model's: "
+                         "--trainer.materials-refit-steps 0 keeps the start's)" if config.trainer.materials_refit_steps else "")
+                      + ", " if peaks else "materials: ")
                      + f"K = 1..{config.bounds_max_materials} by "
                      + ("the lowest BIC whose boundaries are all density valleys" if config.bounds_k_rule != "bic" else "BIC")
                      + (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")

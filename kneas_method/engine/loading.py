@@ -99,6 +99,10 @@ def config_from_dict(data: Any, where: str):
         # written in the 64th stop: Gaussians alone, fitted as a pass fits
         data["trainer"] = dict(trainer, denoise="sure-gaussian" if trainer["denoise"] == "sure" else trainer["denoise"],
                                denoise_steps=trainer.get("correction_steps", 75), denoise_lr=trainer.get("correction_lr", 1e-4))
+    trainer = data.get("trainer")
+    if isinstance(trainer, dict) and "denoise_steps" in trainer and "materials_refit_steps" not in trainer:
+        # written before the 67th stop, whose runs kept the start's materials
+        data["trainer"] = dict(trainer, materials_refit_steps=0)
     trainer, model = data.get("trainer"), data.get("model")
     if isinstance(trainer, dict) and "warm_start_steps" in trainer and isinstance(model, dict) \
             and isinstance(model.get("attenuation_options"), dict) and "hidden_dim" not in model["attenuation_options"] \

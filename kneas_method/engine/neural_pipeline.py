@@ -12,6 +12,9 @@ Stages (each returns a typed result):
 4. **correction** (surface models, ``trainer.correction_passes`` > 0): ``correct_stage``, passes of
    the band correction of the trained model against the training views (``kneas_method.correction``),
    each written into the model; the checkpoint is rewritten with them.
+   **materials** (bounds from the peaks rule's fallback: a noisy start): ``materials_stage`` fits
+   the mixtures again to the trained volume and, where they find more materials, refits the model
+   with them (``bounds.json``, ``config.json`` and the checkpoint follow).
 5. **evaluation**: ``evaluate_model_stage`` on all held-out views and the voxel centres.
 6. **report**: figures, ``metrics.json`` and the summary block (``report``).
 """
@@ -32,6 +35,7 @@ from .classical_volume import classical_volume
 from .correction_stage import correct_stage
 from .evaluate import evaluate_model_stage
 from .figures import run_figures
+from .materials_stage import materials_stage
 from .run_dir import read_json, save_run_config, write_json
 from .train_stage import WarmStartVolume, train_stage
 from .trainer import StageInterrupted
@@ -125,6 +129,7 @@ class NeuralPipeline:
                 tb.flush()
         try:
             correction = correct_stage(trainer, scene, config, device)
+            config, bounds = materials_stage(trainer, scene, config, bounds, run_dir)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted during the correction[/]; training is complete (checkpoint {trainer.last_checkpoint})")
         try:

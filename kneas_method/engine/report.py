@@ -21,7 +21,7 @@ from .run_dir import write_json
 STAGES = (("prior_time_s", "prior"), ("classical_time_s", "classical volume"), ("bounds_time_s", "bounds"),
           ("reconstruct_time_s", "reconstruction"),
           ("warm_start_time_s", "warm start"), ("train_time_s", "training"), ("correction_time_s", "correction"),
-          ("eval_time_s", "evaluation"))
+          ("materials_time_s", "materials"), ("eval_time_s", "evaluation"))
 
 
 def split_per_view(metrics: dict) -> tuple[dict, dict]:
@@ -73,13 +73,16 @@ def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classi
     prior_time = bounds.prior_wall_time_s if bounds is not None else 0.0
     bounds_time = float(bounds.details.get("fit_time_s", 0.0)) if bounds is not None else 0.0  # the GMM fit
     correction_time = float(trainer.correction_time_s) if correction is not None else 0.0
+    refit = trainer.materials_refit
+    materials_time = float(refit.get("seconds", 0.0)) if refit else 0.0
     out.update(parameters=trainer.model.num_parameters(), steps=trainer.step, epochs=trainer.epochs,
                wall_time_s=trainer.wall_time_s + trainer.warm_start_time_s + prior_time + classical_time_s + bounds_time
-               + correction_time + evaluation.seconds,
+               + correction_time + materials_time + evaluation.seconds,
                train_time_s=trainer.wall_time_s, warm_start_time_s=trainer.warm_start_time_s, warm_start=config.trainer.warm_start,
                prior_time_s=prior_time, classical_time_s=classical_time_s, bounds_time_s=bounds_time, classical_volume=classical_volume,
                correction_time_s=correction_time, correction=correction,
                denoising=trainer.denoising if correction is not None else None,
+               materials_time_s=materials_time, materials_refit=refit,
                eval_time_s=evaluation.seconds, **facts, bad_steps=len(trainer.bad_steps))
     if trainer.model.has_surfaces:
         out["num_materials"] = int(trainer.model.num_materials)

@@ -22,11 +22,12 @@ non-finite.
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -126,10 +127,7 @@ class Trainer:
         self.datamanager = config.datamanager.setup(scene=scene, device=self.device, seed=seed)
         self.steps_per_epoch = self.datamanager.steps_per_epoch
         self.total_steps = self.epochs * self.steps_per_epoch
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(t.lr))
-        decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
-        factor = float(t.lr_decay_factor)
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: factor if s >= decay_step else 1.0)
+        self._make_optimizer()
         self.generator = torch.Generator(device="cpu")
         self.generator.manual_seed(seed + 7919)
         self.step = 0
@@ -143,6 +141,15 @@ class Trainer:
         self.correction: Optional[list] = None  # the band-correction passes after training (correction_stage)
         self.correction_time_s = 0.0
         self.denoising: Optional[dict] = None  # the SURE smoothing after the passes (correction_stage.denoise_stage)
+        self.materials_refit: Optional[dict] = None  # the materials found again on the trained volume (materials_stage)
+
+    def _make_optimizer(self) -> None:
+        """A fresh Adam optimiser over the model's parameters and the learning-rate schedule."""
+        t = self.config.trainer
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(t.lr))
+        decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
+        factor = float(t.lr_decay_factor)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: factor if s >= decay_step else 1.0)
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -167,6 +174,7 @@ class Trainer:
                 "correction": self.correction,
                 "correction_time_s": float(self.correction_time_s),
                 "denoising": self.denoising,
+                "materials_refit": self.materials_refit,
             },
         }
 
@@ -190,6 +198,7 @@ class Trainer:
         self.correction = extra.get("correction")
         self.correction_time_s = float(extra.get("correction_time_s", 0.0))
         self.denoising = extra.get("denoising")
+        self.materials_refit = extra.get("materials_refit")
 
     def resume(self) -> Optional[Path]:
         """Load the newest checkpoint of this stage, if any; returns its path."""
@@ -271,18 +280,51 @@ class Trainer:
         if self.step != 0:
             raise KneasError(f"the warm start runs before training, but the {self.label} stage is at step {self.step}")
         started = time.perf_counter()
-        points, targets = self._voxel_targets(volume, "warm-start")
-        gen = torch.Generator(device="cpu")
-        gen.manual_seed(int(self.config.seed) + 104729)
-        n = min(int(points_per_step), len(points))
-        values = self._fit_steps(points, targets, lambda: torch.randint(0, len(points), (n,), generator=gen).to(self.device),
-                                 int(steps), float(self.config.trainer.lr), float(occupancy_weight),
-                                 f"{self.label} warm start", f"fit to the {what} volume",
-                                 f"check the {what} volume or use --trainer.warm-start none")
+        values = self._fit_whole_volume(volume, "warm-start", steps, points_per_step, occupancy_weight, 104729, f"{self.label} warm start",
+                                        f"fit to the {what} volume", f"check the {what} volume or use --trainer.warm-start none")
         for k, v in values.items():
             self._record(f"warm_start_{k}", v)
         self.warm_start_time_s = time.perf_counter() - started
         return self.warm_start_time_s
+
+    def _fit_whole_volume(self, volume: np.ndarray, name: str, steps: int, points_per_step: int, occupancy_weight: float,
+                          seed_offset: int, task: str, info: str, fix: str) -> dict[str, float]:
+        """``steps`` steps of ``_fit_steps`` on ``points_per_step`` voxel centres drawn anywhere in
+        the box (seeded from the run's seed + ``seed_offset``) at the trainer's learning rate;
+        ``name``: the volume, as a wrong shape's error names it."""
+        points, targets = self._voxel_targets(volume, name)
+        gen = torch.Generator(device="cpu")
+        gen.manual_seed(int(self.config.seed) + int(seed_offset))
+        n = min(int(points_per_step), len(points))
+        return self._fit_steps(points, targets, lambda: torch.randint(0, len(points), (n,), generator=gen).to(self.device),
+                               int(steps), float(self.config.trainer.lr), float(occupancy_weight), task, info, fix)
+
+    def refit_materials(self, volume: np.ndarray, alphas: Sequence[float], betas: Sequence[float], steps: int,
+                        points_per_step: int, occupancy_weight: float, what: str = "trained") -> None:
+        """Replace the trained model by a fresh one with ``len(alphas)`` materials and these bounds
+        (data units; ``config.num_materials`` follows), the old one's empty-space and voxel grids,
+        and fit it to ``volume`` [nx, ny, nz] (data units) as the warm start fits (``steps`` steps on
+        ``points_per_step`` voxel centres, the occupancy cross-entropy at ``occupancy_weight``).
+        The optimiser and its schedule are made afresh for the new parameters: the stage runs after
+        training, and they only keep a checkpoint loadable."""
+        from ..model import CTModel
+
+        old = self.model
+        K = len(alphas)
+        model_config = dataclasses.replace(self.config.model, num_materials=K)
+        self.config = dataclasses.replace(self.config, num_materials=K, model=model_config)
+        torch.manual_seed(int(self.config.seed) + 15485863)
+        model = CTModel(model_config, scale=self.scene.geometry.scale, device=self.device).to(self.device)
+        model.set_bounds(alphas, betas)
+        if old.occupancy is not None:
+            model.set_occupancy(old.occupancy, old.occupancy_box[0].tolist(), old.occupancy_box[1].tolist())
+        if model.quadrature == "voxel-planes":
+            model.set_voxel_grid(old.voxel_count.tolist(), old.voxel_box[0].tolist(), old.voxel_box[1].tolist())
+        self.model = model
+        self._make_optimizer()
+        self._fit_whole_volume(volume, what, steps, points_per_step, occupancy_weight, 15485863, f"{self.label} materials fit",
+                               f"fit of {K} materials to the {what} volume", "use --trainer.materials-refit-steps 0")
+        self.model.eval()
 
     def _fit_steps(self, points: torch.Tensor, targets: torch.Tensor, draw, steps: int, lr: float, occupancy_weight: float,
                    task: str, info: str, fix: str, curvature: float = 0.0,

@@ -1,0 +1,108 @@
+"""The materials of a noisy scan found again on its trained volume (engine.materials_stage)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import tiny_config
+from kneas_method.data.naf import save_naf
+from kneas_method.data.simulate import SimulationConfig, simulate_phantom
+from kneas_method.engine import materials_stage as stage_mod
+from kneas_method.engine.bounds_stage import BoundsResult
+from kneas_method.engine.loading import load_run
+from kneas_method.engine.run_dir import create_run_dir, save_run_config
+from kneas_method.engine.trainer import Trainer
+
+SMOOTHED = {"filter": "bilateral", "sigma_voxels": 3.0, "range_fraction": 0.1}
+
+
+@pytest.fixture(scope="module")
+def scene_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("scene") / "foot32.pickle"
+    save_naf(simulate_phantom("foot", SimulationConfig(n_voxel=32, voxel_mm=8.0, n_detector=32, n_train=4, n_val=2)), path)
+    return path
+
+
+def three_levels(n=32):
+    """Nested balls of 0.2, 0.5 and 0.9 in air on the n^3 grid: (levels [3], volume [n, n, n])."""
+    g = (np.arange(n) - (n - 1) / 2) / (n / 2)
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    v = np.where(np.sqrt(x ** 2 + y ** 2 + z ** 2) < 0.85, 0.2, 0.0)
+    v = np.where(np.sqrt((x - 0.25) ** 2 + y ** 2 + z ** 2) < 0.45, 0.5, v)
+    v = np.where(np.sqrt((x + 0.4) ** 2 + y ** 2 + z ** 2) < 0.25, 0.9, v)
+    return np.array([0.2, 0.5, 0.9]), v.astype(np.float32)
+
+
+def trained(scene_path, tmp_path, K, smoothed=SMOOTHED, steps=80):
+    """A finished tiny k-neas run with K materials over [0, 1] whose bounds came (or not) from the
+    fallback: (config, scene, trainer, bounds, run_dir)."""
+    from kneas_method.data.scenes import resolve_scene
+
+    config = tiny_config("k-neas", scene_path, num_materials=K)
+    config = dataclasses.replace(config, model=dataclasses.replace(config.model, num_materials=K),
+                                 trainer=dataclasses.replace(config.trainer, materials_refit_steps=steps))
+    scene = resolve_scene(str(scene_path))
+    run_dir = create_run_dir(tmp_path, scene.name, "k-neas")
+    save_run_config(run_dir, config)
+    edges = np.linspace(0.0, 1.0, K + 1)
+    bounds = BoundsResult(list(np.diff(edges)), list(edges[:-1]), K, "gmm (gmm) on the ASD-POCS", 0.0,
+                          {"volume": "asd-pocs", "smoothed": smoothed})
+    (run_dir / "bounds.json").write_text(json.dumps(bounds.to_json()))
+    trainer = Trainer(config, scene, run_dir, epochs=1, device="cpu", bounds=(bounds.alphas, bounds.betas))
+    trainer.step, trainer.complete = trainer.total_steps, True
+    trainer.save(complete=True)
+    return config, scene, trainer, bounds, run_dir
+
+
+def test_more_materials_on_the_trained_volume_replace_the_model(scene_path, tmp_path, monkeypatch):
+    levels, target = three_levels()
+    monkeypatch.setattr("kneas_method.engine.evaluate.sample_volume", lambda model, geometry, **kw: target)
+    config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1)
+    old = trainer.model
+    config2, bounds2 = stage_mod.materials_stage(trainer, scene, config, bounds, run_dir)
+    K = bounds2.K  # the three levels, and their blurred edges' values next to air (0 < mu < 0.2) may make a fourth
+    assert K in (3, 4) and config2.num_materials == K and config2.model.num_materials == K
+    assert trainer.model is not old and trainer.model.num_materials == K
+    b = np.array(trainer.materials_refit["boundaries"])
+    assert len(b) == K + 1 and np.unique(np.searchsorted(b, levels)).size == 3  # each level in a material of its own
+    assert trainer.materials_refit["refit"] and trainer.materials_refit["start_K"] == 1
+    # bounds.json, config.json and the checkpoint name the new K, the start's bounds kept
+    saved = json.loads((run_dir / "bounds.json").read_text())
+    assert saved["K"] == K and saved["start_bounds"]["K"] == 1 and saved["smoothed"] == SMOOTHED
+    assert saved["gmm"]["boundaries"] == pytest.approx(list(b)) and "trained volume" in saved["k_chosen_by"]
+    assert json.loads((run_dir / "config.json").read_text())["num_materials"] == K
+    assert (run_dir / "figures" / "gmm_bounds_trained.png").is_file()
+    loaded = load_run(run_dir)
+    assert loaded.model.num_materials == K
+    # the fit moved the fresh model towards the trained volume
+    from kneas_method.evaluation.surfaces import query_grid
+
+    mu = query_grid(loaded.model, scene.geometry, keys=("mu",))["mu"]
+    assert np.mean((mu - target) ** 2) < 0.25 * np.mean(target ** 2)
+    # a resumed run does not redo it
+    trainer2 = Trainer(config2, scene, run_dir, epochs=1, device="cpu", bounds=(bounds2.alphas, bounds2.betas))
+    assert trainer2.resume() is not None and trainer2.materials_refit["K"] == K
+    same = trainer2.model
+    assert stage_mod.materials_stage(trainer2, scene, config2, bounds2, run_dir) == (config2, bounds2) and trainer2.model is same
+
+
+def test_as_many_materials_keep_the_model_and_clean_starts_skip_the_stage(scene_path, tmp_path, monkeypatch):
+    _, target = three_levels()
+    calls = []
+    monkeypatch.setattr("kneas_method.engine.evaluate.sample_volume", lambda model, geometry, **kw: calls.append(1) or target)
+    config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=4)  # the trained volume shows 3 or 4
+    before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
+    model = trainer.model
+    assert stage_mod.materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
+    assert trainer.model is model and all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+    assert trainer.materials_refit["K"] <= 4 and not trainer.materials_refit["refit"] and calls == [1]
+    assert json.loads((run_dir / "bounds.json").read_text())["K"] == 4
+    # bounds from the histogram's peaks (a clean start) or the stage switched off: nothing is computed
+    for smoothed, steps in ((None, 80), (SMOOTHED, 0)):
+        config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1, smoothed=smoothed, steps=steps)
+        assert stage_mod.materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
+        assert trainer.materials_refit is None and trainer.model.num_materials == 1
+    assert calls == [1]
