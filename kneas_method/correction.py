@@ -367,8 +367,11 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
         say(f"band: {float(band.float().mean()):.1%} of the voxels; the discretisation error of the last pass")
         d = discretisation
     else:
-        say(f"band: {float(band.float().mean()):.1%} of the voxels; discretisation error on the {fine}x grid")
+        say(f"band: {float(band.float().mean()):.1%} of the voxels; discretisation error on the {fine}x grid "
+            "(the model queried in the band, the fine grid projected: the dearest part of a pass)")
+        t_estimate = time.perf_counter()
         d = discretisation_error(model, geometry, volume, band, A, projector(fine), fine=fine, sharpen=sharpen)
+        say(f"discretisation error estimated in {time.perf_counter() - t_estimate:.0f} s")
     r = r - d
     sigma2 = noise_variance(r)
     where = ("band, weighted by its gradient" if weighting == "gradient" else "band" if ring == 1.0

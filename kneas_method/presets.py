@@ -152,6 +152,12 @@ NUMBER_RULES = (
     ("trainer", "eval_every", True, 0, True), ("trainer", "checkpoint_every", True, 0, True),
     ("trainer", "eval_chunk", True, 1, True), ("trainer", "eval_views", True, 1, True),
     ("trainer", "log_every", True, 1, True), ("trainer", "max_bad_steps", True, 0, True),
+    ("trainer", "anchor_points", True, 1, True), ("trainer", "correction_passes", True, 0, True),
+    ("trainer", "correction_iterations", True, 0, True), ("trainer", "correction_steps", True, 0, True),
+    ("trainer", "correction_points", True, 0, True), ("trainer", "correction_refresh", True, 1, True),
+    ("trainer", "denoise_steps", True, 0, True), ("trainer", "materials_refit_steps", True, 0, True),
+    ("trainer", "correction_noise_factor", False, 0, True), ("trainer", "correction_lr", False, 0, True),
+    ("trainer", "correction_curvature", False, 0, True), ("trainer", "denoise_lr", False, 0, True),
     ("datamanager", "num_object_rays", True, 0, True), ("datamanager", "num_air_rays", True, 0, True),
 )
 
@@ -246,19 +252,6 @@ def resolve(config: RunConfig) -> RunConfig:
     if not (isinstance(decay, (int, float)) and not isinstance(decay, bool) and 0 <= decay <= 1):
         raise ConfigError(f"trainer.lr_decay_at must be the fraction of the steps after which the rate drops, got {decay!r}; "
                           "give --trainer.lr-decay-at a number from 0 to 1 (0.5: the paper's)")
-    for setting in ("correction_passes", "correction_iterations", "correction_steps", "correction_points", "denoise_steps",
-                    "materials_refit_steps"):
-        value = getattr(trainer, setting)
-        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
-            raise ConfigError(f"trainer.{setting} must be a whole number >= 0, got {value!r}")
-    if not (isinstance(trainer.correction_refresh, int) and not isinstance(trainer.correction_refresh, bool)
-            and trainer.correction_refresh >= 1):
-        raise ConfigError(f"trainer.correction_refresh must be a whole number >= 1 (passes between fresh discretisation "
-                          f"errors), got {trainer.correction_refresh!r}")
-    for setting in ("correction_noise_factor", "correction_lr", "correction_curvature", "denoise_lr"):
-        value = getattr(trainer, setting)
-        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
-            raise ConfigError(f"trainer.{setting} must be a number >= 0, got {value!r}")
     ring = trainer.correction_ring
     if ring is not None and trainer.correction_weights != "ring":
         raise ConfigError(f"trainer.correction_ring weights the band's outer ring in the ring rule, and the correction weights are "
@@ -277,8 +270,6 @@ def resolve(config: RunConfig) -> RunConfig:
                               "correction passes; give --trainer.correction-passes 12 (a surface method such as k-neas) or drop "
                               "--trainer.denoise")
         trainer = dataclasses.replace(trainer, denoise="none")  # the preset's, where there is no correction stage
-    if not (isinstance(trainer.anchor_points, int) and trainer.anchor_points >= 1):
-        raise ConfigError(f"trainer.anchor_points must be a whole number >= 1, got {trainer.anchor_points!r}")
     datamanager = _fill(config.datamanager, table["datamanager"])
     check_numbers(dataclasses.replace(config, model=model, trainer=trainer, datamanager=datamanager))
     run = {k: getattr(config, k) if getattr(config, k) is not None else v for k, v in table["run"].items()}

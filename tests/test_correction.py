@@ -395,7 +395,11 @@ def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     code, out, err = run(["naf", "--scene", "foot", "--preset", "tiny", "--trainer.correction-passes", "2", "--dry-run"], capsys)
     assert code != 0 and "no surfaces" in err and "Traceback" not in err
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-refresh", "0", "--dry-run"], capsys)
-    assert code != 0 and "correction_refresh" in err and "Traceback" not in err
+    assert code != 0 and "--trainer.correction-refresh must be a whole number >= 1, got 0" in err and "Traceback" not in err
+    for flag, value, rule in (("--trainer.correction-passes", "-1", "a whole number >= 0"), ("--trainer.correction-lr", "-1e-4", "a number >= 0"),
+                              ("--trainer.materials-refit-steps", "-5", "a whole number >= 0"), ("--trainer.anchor-points", "0", "a whole number >= 1")):
+        code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", flag, value, "--dry-run"], capsys)
+        assert code == 2 and f"{flag} must be {rule}, got" in err and "Traceback" not in err
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-ring", "2", "--dry-run"], capsys)
     assert code != 0 and "correction_ring" in err and "from 0" in err and "Traceback" not in err
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-weights", "gradient",
