@@ -228,4 +228,4 @@ def test_denoise_settings_that_cannot_apply_are_refused_and_older_runs_keep_none
                                 "config.json").trainer
     assert (gaussian.denoise, gaussian.denoise_steps, gaussian.denoise_lr) == ("sure-gaussian", 75, 1e-4)
     code, out, err = run(["k-neas", "--scene", "foot", "--trainer.denoise-steps", "-3", "--dry-run"], capsys)
-    assert code != 0 and "denoise_steps" in err and "Traceback" not in err
+    assert code == 2 and "--trainer.denoise-steps must be a whole number >= 0, got -3" in err and "Traceback" not in err
