@@ -106,3 +106,25 @@ def test_as_many_materials_keep_the_model_and_clean_starts_skip_the_stage(scene_
         assert stage_mod.materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
         assert trainer.materials_refit is None and trainer.model.num_materials == 1
     assert calls == [1]
+
+
+def test_an_interrupted_materials_stage_is_redone_on_resume(tiny_scene, tmp_path, capsys, monkeypatch):
+    from conftest import run, run_dir_of
+    from kneas_method.engine import neural_pipeline
+
+    real, calls = neural_pipeline.materials_stage, []
+
+    def interrupted(*args, **kw):
+        calls.append(1)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(neural_pipeline, "materials_stage", interrupted)
+    args = ["k-neas", "--scene", str(tiny_scene), "--preset", "tiny", "--trainer.epochs", "1", "--trainer.eval-every", "0",
+            "--bounds-source", "wide", "--output-dir", str(tmp_path / "o")]
+    code, out, err = run(args, capsys)
+    run_dir = run_dir_of(out)
+    assert code == 130 and calls == [1] and "interrupted while the materials were found again" in out
+    assert f"kneas-train --resume {run_dir}" in out.replace("\n", "") and not (run_dir / "metrics.json").exists()
+    monkeypatch.setattr(neural_pipeline, "materials_stage", lambda *a, **kw: calls.append(2) or real(*a, **kw))
+    code, out, err = run(["--resume", str(run_dir)], capsys)
+    assert code == 0 and calls == [1, 2] and (run_dir / "metrics.json").is_file(), err

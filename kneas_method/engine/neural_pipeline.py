@@ -129,9 +129,13 @@ class NeuralPipeline:
                 tb.flush()
         try:
             correction = correct_stage(trainer, scene, config, device)
-            config, bounds = materials_stage(trainer, scene, config, bounds, run_dir)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted during the correction[/]; training is complete (checkpoint {trainer.last_checkpoint})")
+        try:
+            config, bounds = materials_stage(trainer, scene, config, bounds, run_dir)
+        except KeyboardInterrupt:
+            return _interrupted(run_dir, f"[yellow]interrupted while the materials were found again[/]; training and the correction are "
+                                f"complete (checkpoint {trainer.last_checkpoint})")
         try:
             evaluation = evaluate_model_stage(trainer.model, scene, config, device, console)
         except KeyboardInterrupt:
