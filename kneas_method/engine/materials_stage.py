@@ -15,7 +15,6 @@ checkpoint (``materials_refit``), so a resumed run does not redo it.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 import warnings
 from pathlib import Path
@@ -77,7 +76,7 @@ def materials_stage(trainer, scene, config, bounds: Optional[BoundsResult], run_
                            f"(more materials than the start's {start['K']})", "gmm": fit, "materials_refit": found,
                            "start_bounds": start})
     write_json(Path(run_dir) / "bounds.json", bounds.to_json())
-    config = dataclasses.replace(config, num_materials=K, model=dataclasses.replace(config.model, num_materials=K))
+    config = trainer.config  # the run's, with the new K (Trainer.refit_materials)
     save_run_config(run_dir, config)
     gmm.plot(Path(run_dir) / "figures" / "gmm_bounds_trained.png",
              title=f"{scene.name}: attenuation bounds found again (the trained volume after a bilateral filter), K = {K}")

@@ -71,6 +71,9 @@ class _DeferredInterrupt:
         return False
 
 
+REFIT_SEED_OFFSET = 15485863  # the materials refit's initialisation and draws: the run's seed plus this
+
+
 def _finite_params(model: torch.nn.Module) -> bool:
     return all(bool(torch.isfinite(p).all()) for p in model.parameters())
 
@@ -313,7 +316,7 @@ class Trainer:
         K = len(alphas)
         model_config = dataclasses.replace(self.config.model, num_materials=K)
         self.config = dataclasses.replace(self.config, num_materials=K, model=model_config)
-        torch.manual_seed(int(self.config.seed) + 15485863)
+        torch.manual_seed(int(self.config.seed) + REFIT_SEED_OFFSET)
         model = CTModel(model_config, scale=self.scene.geometry.scale, device=self.device).to(self.device)
         model.set_bounds(alphas, betas)
         if old.occupancy is not None:
@@ -322,7 +325,7 @@ class Trainer:
             model.set_voxel_grid(old.voxel_count.tolist(), old.voxel_box[0].tolist(), old.voxel_box[1].tolist())
         self.model = model
         self._make_optimizer()
-        self._fit_whole_volume(volume, what, steps, points_per_step, occupancy_weight, 15485863, f"{self.label} materials fit",
+        self._fit_whole_volume(volume, what, steps, points_per_step, occupancy_weight, REFIT_SEED_OFFSET, f"{self.label} materials fit",
                                f"fit of {K} materials to the {what} volume", "use --trainer.materials-refit-steps 0")
         self.model.eval()
 
