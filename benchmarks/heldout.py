@@ -20,6 +20,9 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
 * ``abdomen-noisy``: the built-in abdomen with the same noise (added in the 65th stop, after the
   bilateral filter's settings were chosen on the four noisy scans above, to check them on one they
   were not chosen on).
+* ``head-noisy``: ``head-256`` (its phantom, 256² detector) with the same noise (added in the 67th
+  stop, after the materials stage was built on the five noisy scans here, to check it on one it was
+  not built on).
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object
   (not piecewise constant: TV's weak case), projected with the Joseph projector, with noise.
 
@@ -38,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy")
+SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy", "head-noisy")
 
 
 def head_phantom():
@@ -87,6 +90,10 @@ def heldout_scene(name: str):
     if name == "head-256":
         scene = simulate_phantom(head_phantom(), head)
         scene.name = "head-256"  # the phantom is "head"; the scene is named as its pickle
+        return scene
+    if name == "head-noisy":
+        scene = simulate_phantom(head_phantom(), dataclasses.replace(head, noise=True))
+        scene.name = "head-noisy"
         return scene
     if name == "head-vox256":
         scene = simulate_phantom(head_phantom(), dataclasses.replace(head, n_voxel=256, voxel_mm=0.8))  # the same box, 8x the voxels
