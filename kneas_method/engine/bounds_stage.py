@@ -54,6 +54,16 @@ def histogram_smoothing(volume) -> np.ndarray:
     return bilateral(v, FALLBACK_SIGMA, FALLBACK_RANGE * top).numpy()
 
 
+def run_mixtures(config, *, K: Optional[int] = None, k_rule: Optional[str] = None):
+    """An unfitted ``GMMBounds`` with the run's settings (seed, method, K range, width floor,
+    starts); ``K`` fixes the count, ``k_rule`` replaces ``config.bounds_k_rule``."""
+    from ..bounds import GMMBounds
+
+    return GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
+                     max_components=int(config.bounds_max_materials), k_rule=k_rule or config.bounds_k_rule,
+                     min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts))
+
+
 @dataclass
 class BoundsResult:
     """Attenuation bounds per material (data units, 1/m) and where they came from.
@@ -195,7 +205,7 @@ def _line_integral_check(gmm, scene, what: str) -> float:
 def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.ndarray] = None) -> BoundsResult:
     """Bounds for a surface method (module docstring). ``volume``: the classical bounds volume
     when ``config.bounds_volume`` is a classical method (the caller computes it once)."""
-    from ..bounds import GMMBounds, load_bounds
+    from ..bounds import load_bounds
 
     K = config.num_materials
     if config.bounds is not None:
@@ -240,10 +250,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
         smoothed.append(histogram_smoothing(volume))
         return smoothed[0]
 
-    gmm = GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
-                    max_components=int(config.bounds_max_materials), k_rule=config.bounds_k_rule,
-                    min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts)).fit(
-        volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
+    gmm = run_mixtures(config, K=K).fit(volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"

@@ -21,14 +21,13 @@ from pathlib import Path
 from typing import Optional
 
 from ..console import say
-from .bounds_stage import FALLBACK_RANGE, FALLBACK_SIGMA, BoundsResult, histogram_smoothing
+from .bounds_stage import FALLBACK_RANGE, FALLBACK_SIGMA, BoundsResult, histogram_smoothing, run_mixtures
 from .run_dir import save_run_config, write_json
 
 
 def materials_stage(trainer, scene, config, bounds: Optional[BoundsResult], run_dir: Path) -> tuple:
     """``(config, bounds)`` after the materials are found again on the trained volume (module docs):
     the given ones where the stage does not apply or keeps the model, else the new K's."""
-    from ..bounds import GMMBounds
     from .evaluate import sample_volume
 
     steps = int(config.trainer.materials_refit_steps or 0)
@@ -45,9 +44,7 @@ def materials_stage(trainer, scene, config, bounds: Optional[BoundsResult], run_
         markup=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the mixtures' remarks are the bounds stage's to make
-        gmm = GMMBounds(random_state=int(config.seed), method=config.bounds_method, max_components=int(config.bounds_max_materials),
-                        k_rule="bic-valleys", min_std=float(config.bounds_min_std),
-                        n_init=int(config.bounds_gmm_restarts)).fit(histogram_smoothing(volume))
+        gmm = run_mixtures(config, k_rule="bic-valleys").fit(histogram_smoothing(volume))
     K = int(gmm.n_components_)
     found = {"K": K, "start_K": int(bounds.K), "boundaries": [float(b) for b in gmm.boundaries_], "refit": K > bounds.K,
              "steps": steps if K > bounds.K else 0}
