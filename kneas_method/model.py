@@ -194,6 +194,9 @@ class CTModel(nn.Module):
 
         self.config = config
         self.scale = float(scale)
+        # the attenuation unit the losses are measured in (data units per unit; engine.loss_scale): 1 for
+        # NAF-normalised scans, larger for a scanner's units, so every loss weighs as on NAF's scale
+        self.loss_scale = 1.0
         enc_cfg = build_component("encodings", config.encoding, config.encoding_options)
         encoding = enc_cfg.setup(device=device) if device is not None else enc_cfg.setup()
         field_cfg = build_component("fields", config.field, config.field_options)
@@ -458,7 +461,7 @@ class CTModel(nn.Module):
                                         curvature_weight=curvature_weight, steps=None if steps is None else steps[queried])
             share = kept / count
             out = {k: v * share for k, v in out.items() if k != "total"}
-            out["volume"] = out["volume"] + unseen / count
+            out["volume"] = out["volume"] + unseen / count / self.loss_scale ** 2
             out["total"] = sum(out.values())
             return out
         fused = self.fused_eikonal
@@ -468,6 +471,8 @@ class CTModel(nn.Module):
             points = points.detach().requires_grad_(self.eikonal is not None)
             q = self.query(points)
         out = {"volume": torch.mean((q["mu"] - targets) ** 2)}
+        if self.loss_scale != 1.0:  # in units of loss_scale, as the intensity loss
+            out["volume"] = out["volume"] / self.loss_scale ** 2
         if occupancy_weight > 0 and self.has_surfaces:
             out["occupancy"] = occupancy_weight * self.occupancy_loss(q["distances"], targets)
         if self.eikonal is not None:
@@ -543,8 +548,10 @@ class CTModel(nn.Module):
         frac = 1.0 if cfg.eikonal_fraction is None else float(cfg.eikonal_fraction)
         fused = self.fused_eikonal
         eik_same = self.eikonal is not None and frac >= 1.0 and self.eikonal.config.mode == "autograd"
-        intensity, _, flat, q = self._render(origins, directions, batch["near"], batch["far"], int(n_samples), True, generator,
-                                                   points_grad=eik_same and not fused, with_grads=eik_same and fused)
+        intensity, line, flat, q = self._render(origins, directions, batch["near"], batch["far"], int(n_samples), True, generator,
+                                                points_grad=eik_same and not fused, with_grads=eik_same and fused)
+        if self.loss_scale != 1.0:  # the intensities of the scan in units of loss_scale (its line integrals / loss_scale)
+            intensity, p = torch.exp(-line / self.loss_scale), p / self.loss_scale
         out: dict[str, torch.Tensor] = {}
         out["intensity"] = self.intensity_loss(intensity[~air], p[~air])
         if use_air:

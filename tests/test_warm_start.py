@@ -491,6 +491,7 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["warm_start"] == "fdk" and metrics["classical_volume"] == "fdk" and metrics["warm_start_time_s"] > 0 and metrics["classical_time_s"] > 0
     assert metrics["bounds_time_s"] == pytest.approx(bounds["fit_time_s"]) and metrics["bounds_time_s"] > 0
+    assert metrics["loss_scale"] == 1.0  # a NAF-normalised scan: its losses as they were (engine.loss_scale)
     parts = (metrics["train_time_s"] + metrics["warm_start_time_s"] + metrics["classical_time_s"] + metrics["bounds_time_s"]
              + metrics["eval_time_s"] + metrics["prior_time_s"])
     assert metrics["wall_time_s"] == pytest.approx(parts)

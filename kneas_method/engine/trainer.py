@@ -36,6 +36,7 @@ from ..errors import KneasError
 from ..evaluation.metrics import psnr2d
 from .anchor import Anchor, edge_trust, label_interior
 from .checkpoint import load_latest_checkpoint, save_checkpoint
+from .loss_scale import LOSS_SCALE_TOP, loss_scale
 from .progress import format_losses, stage_progress
 
 
@@ -121,6 +122,11 @@ class Trainer:
         seed = int(config.seed)
         torch.manual_seed(seed)
         self.model = CTModel(config.model, scale=scene.geometry.scale, device=self.device).to(self.device)
+        self.model.loss_scale = loss_scale(scene)
+        if self.model.loss_scale != 1.0:
+            self._print(f"{label}: losses measured in units of {self.model.loss_scale:.4g} /m, the 99.5th percentile of the scan's "
+                        f"FDK volume, which is above NAF's normalised {LOSS_SCALE_TOP:g} /m, so that they weigh as on NAF's "
+                        "scale; the volume and the bounds stay in /m")
         if bounds is not None:
             self.model.set_bounds(*bounds)
         if self.model.quadrature == "voxel-planes":
@@ -319,6 +325,7 @@ class Trainer:
         torch.manual_seed(int(self.config.seed) + REFIT_SEED_OFFSET)
         model = CTModel(model_config, scale=self.scene.geometry.scale, device=self.device).to(self.device)
         model.set_bounds(alphas, betas)
+        model.loss_scale = old.loss_scale
         if old.occupancy is not None:
             model.set_occupancy(old.occupancy, old.occupancy_box[0].tolist(), old.occupancy_box[1].tolist())
         if model.quadrature == "voxel-planes":
@@ -451,6 +458,8 @@ class Trainer:
             q = self.model.query(a.points[idx])
             squared = (q["mu"] - a.targets[idx]) ** 2
             loss = torch.mean(squared if a.value_weights is None else a.value_weights[idx] * squared)
+            if self.model.loss_scale != 1.0:  # in the model's loss unit, as its other terms
+                loss = loss / self.model.loss_scale ** 2
             if a.label_mask is not None:
                 loss = loss + a.occupancy_weight * self.model.occupancy_loss(q["distances"], a.targets[idx], mask=a.label_mask[idx])
             return a.weight * loss
@@ -462,6 +471,8 @@ class Trainer:
         squared = (q["mu"] - a.targets[queried]) ** 2
         squared = squared if a.value_weights is None else a.value_weights[queried] * squared
         loss = (squared.sum() + constant) / n
+        if self.model.loss_scale != 1.0:  # in the model's loss unit, as its other terms
+            loss = loss / self.model.loss_scale ** 2
         if a.label_mask is not None:  # the mean over every draw's trusted labels, as a query of every draw gives
             labels = self.model.occupancy_loss(q["distances"], a.targets[queried], mask=a.label_mask[queried])
             loss = loss + a.occupancy_weight * labels * a.label_mask[queried].sum().clamp(min=1) / a.label_mask[idx].sum().clamp(min=1)

@@ -1,0 +1,101 @@
+"""The losses of a scan in a scanner's units weigh as on NAF's normalised scale (engine.loss_scale)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from kneas_method import methods, presets, registry
+from kneas_method.classical.reconstruct import reconstruct
+from kneas_method.data.naf import load_naf
+from kneas_method.data.scene import Views
+from kneas_method.engine.loss_scale import LOSS_SCALE_TOP, loss_scale
+from kneas_method.engine.trainer import Trainer
+
+from conftest import simulated_foot
+
+UNIT = 40.0  # a scanner's /m against NAF's normalised [0, 1] /m: water at ~20 /m
+
+
+@pytest.fixture(scope="module")
+def foot(tmp_path_factory):
+    return load_naf(simulated_foot(tmp_path_factory.mktemp("scene"), "scalefoot", 16, 15.0, n_train=6))
+
+
+def in_units(scene, factor: float):
+    """The same scan with every attenuation times ``factor`` (line integrals and volume)."""
+    return dataclasses.replace(scene, train=Views(scene.train.angles, scene.train.projections * factor),
+                               val=Views(scene.val.angles, scene.val.projections * factor), image=scene.image * factor)
+
+
+def test_naf_scale_is_its_own_unit_and_a_scanners_is_brought_to_it(foot):
+    assert loss_scale(foot) == 1.0  # NAF-normalised: the losses as they always were
+    top = float(np.percentile(np.asarray(reconstruct("fdk", foot).volume), 99.5))
+    assert top < LOSS_SCALE_TOP
+    scanner = in_units(foot, UNIT)
+    assert loss_scale(scanner) == pytest.approx(UNIT * top / LOSS_SCALE_TOP, rel=1e-4)
+    assert loss_scale(scanner) > 1.0
+
+
+def _model(bounds, unit: float):
+    torch.manual_seed(0)
+    cfg = presets.resolve(dataclasses.replace(methods.k_neas.config, preset="tiny"))
+    model = cfg.model.setup()
+    model.set_bounds([unit * a for a in bounds[0]], [unit * b for b in bounds[1]])
+    model.loss_scale = unit
+    return model
+
+
+def test_every_model_loss_of_a_scan_in_other_units_is_the_normalised_ones():
+    bounds = ([0.2, 0.3, 0.5], [0.0, 0.2, 0.5])
+    plain, scaled = _model(bounds, 1.0), _model(bounds, UNIT)
+    torch.manual_seed(1)
+    n_obj, n_air = 12, 4
+    o = torch.tensor([0.0, -3.0, 0.0]).expand(n_obj + n_air, 3).clone()
+    d = torch.cat([torch.rand(n_obj + n_air, 2) * 0.4 - 0.2, torch.ones(n_obj + n_air, 1)], -1)[:, [0, 2, 1]]
+    is_air = torch.arange(n_obj + n_air) >= n_obj
+    p = torch.where(is_air, 0.0, 0.3)
+    batch = {"origins": o, "directions": d, "is_air": is_air, "near": 2.0, "far": 4.0}
+    for progress in (0.1, 0.5):  # with and without the floater term
+        g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+        a = plain.loss_dict({**batch, "projections": p}, progress, generator=g1)
+        b = scaled.loss_dict({**batch, "projections": UNIT * p}, progress, generator=g2)
+        assert set(a) == set(b)
+        for key in a:
+            assert float(b[key].detach()) == pytest.approx(float(a[key].detach()), rel=1e-4, abs=1e-12), key
+    points = torch.rand(64, 3) * 1.6 - 0.8
+    targets = torch.rand(64) * 0.8
+    queried = torch.arange(64) % 3 != 0
+    for kw in ({}, {"queried": queried}):
+        a = plain.volume_loss_dict(points, targets, occupancy_weight=0.1, **kw)
+        b = scaled.volume_loss_dict(points, UNIT * targets, occupancy_weight=0.1, **kw)
+        for key in a:
+            assert float(b[key].detach()) == pytest.approx(float(a[key].detach()), rel=1e-4), key
+
+
+def test_the_anchor_of_a_scan_in_other_units_weighs_as_the_normalised_one(foot, tmp_path):
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny"))
+    bounds = ([0.4, 0.3, 0.4], [0.0, 0.4, 0.7])
+    volume = np.asarray(foot.image, dtype=np.float32)
+    losses = []
+    for unit in (1.0, UNIT):
+        trainer = Trainer(cfg, foot, tmp_path / str(unit), epochs=1, device="cpu",
+                          bounds=([unit * a for a in bounds[0]], [unit * b for b in bounds[1]]))
+        trainer.model.loss_scale = unit  # as loss_scale gives a scan in these units
+        trainer.set_anchor(unit * volume, weight=0.5, points_per_step=300, occupancy_weight=0.1)
+        with torch.no_grad():
+            losses.append(float(trainer.anchor_loss()))
+    assert losses[0] > 0 and losses[1] == pytest.approx(losses[0], rel=1e-4)
+
+
+def test_a_trainer_measures_a_scanners_scan_in_its_unit(foot, tmp_path):
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny"))
+    plain = Trainer(cfg, foot, tmp_path / "plain", epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path / "scanner", epochs=1, device="cpu",
+                      bounds=([UNIT * 0.4, UNIT * 0.3, UNIT * 0.4], [0.0, UNIT * 0.4, UNIT * 0.7]))
+    assert plain.model.loss_scale == 1.0
+    assert scanner.model.loss_scale == pytest.approx(loss_scale(in_units(foot, UNIT)))
+    volume = np.asarray(foot.image, dtype=np.float32) * UNIT
+    scanner.refit_materials(volume, [UNIT * 0.5, UNIT * 0.5], [0.0, UNIT * 0.5], steps=1, points_per_step=64, occupancy_weight=0.0)
+    assert scanner.model.loss_scale == pytest.approx(loss_scale(in_units(foot, UNIT)))  # the refitted model keeps it
