@@ -223,6 +223,9 @@ class CTModel(nn.Module):
         else:
             self.attenuation = self.selector = self.boundary = None
             self.num_materials = 0
+            # a field without bounds gives mu in units of this (data units; the Trainer sets it to the
+            # scan's loss_scale, so the network's outputs are NAF-scale on any scan); kept in checkpoints
+            self.register_buffer("attenuation_unit", torch.ones((), dtype=torch.float32))
         self.ray_sampler = build_component("samplers", config.ray_sampler).setup()
         self.intensity_loss = build_component("losses", config.intensity_loss).setup()
         self.floater_loss = build_component("losses", config.floater_loss, {"fraction": config.floater_fraction}).setup()
@@ -253,6 +256,12 @@ class CTModel(nn.Module):
         self._with_gradients = self._field_with_gradients
         if config.compile and self.field.supports_gradients:
             self._with_gradients = torch.compile(self._field_with_gradients)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints from before the attenuation unit (68th stop) were trained in data units
+        if not self.has_surfaces and prefix + "attenuation_unit" not in state_dict:
+            state_dict[prefix + "attenuation_unit"] = torch.ones((), dtype=torch.float32)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _field_with_gradients(self, points: torch.Tensor):
         """The field's outputs with the distance gradients of the same pass (forward mode)."""
@@ -331,7 +340,8 @@ class CTModel(nn.Module):
         weights are 0 and every distance is positive (outside every material; same magnitude)."""
         if out.distances is None:
             occ = self.occupied(points)
-            return {"mu": out.mu if occ is None else out.mu * occ}
+            mu = out.mu * self.attenuation_unit
+            return {"mu": mu if occ is None else mu * occ}
         q = self.compose(points, out.distances, self.attenuation(out.features))
         if out.distance_gradients is not None:
             q["grads"] = out.distance_gradients

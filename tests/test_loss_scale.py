@@ -99,3 +99,39 @@ def test_a_trainer_measures_a_scanners_scan_in_its_unit(foot, tmp_path):
     volume = np.asarray(foot.image, dtype=np.float32) * UNIT
     scanner.refit_materials(volume, [UNIT * 0.5, UNIT * 0.5], [0.0, UNIT * 0.5], steps=1, points_per_step=64, occupancy_weight=0.0)
     assert scanner.model.loss_scale == pytest.approx(loss_scale(in_units(foot, UNIT)))  # the refitted model keeps it
+
+
+def test_a_field_without_bounds_gives_its_attenuation_in_the_scans_unit():
+    cfg = presets.resolve(dataclasses.replace(methods.naf.config, preset="tiny"))
+    models = []
+    for unit in (1.0, UNIT):
+        torch.manual_seed(0)
+        model = cfg.model.setup()
+        model.attenuation_unit.fill_(unit)
+        model.loss_scale = unit
+        models.append(model)
+    points = torch.rand(64, 3) * 1.6 - 0.8
+    with torch.no_grad():
+        assert torch.allclose(models[1].query(points)["mu"], UNIT * models[0].query(points)["mu"], rtol=1e-5)
+    torch.manual_seed(1)
+    o = torch.tensor([0.0, -3.0, 0.0]).expand(8, 3).clone()
+    d = torch.cat([torch.rand(8, 2) * 0.4 - 0.2, torch.ones(8, 1)], -1)[:, [0, 2, 1]]
+    batch = {"origins": o, "directions": d, "is_air": torch.zeros(8, dtype=torch.bool), "near": 2.0, "far": 4.0}
+    a = models[0].loss_dict({**batch, "projections": torch.full((8,), 0.3)}, 0.5, generator=torch.Generator().manual_seed(3))
+    b = models[1].loss_dict({**batch, "projections": torch.full((8,), 0.3 * UNIT)}, 0.5, generator=torch.Generator().manual_seed(3))
+    assert float(b["total"].detach()) == pytest.approx(float(a["total"].detach()), rel=1e-4)
+    # the unit travels with the weights; a checkpoint from before it (no such key) was trained in data units
+    state = models[1].state_dict()
+    assert float(state["attenuation_unit"]) == UNIT
+    fresh = cfg.model.setup()
+    fresh.load_state_dict(state)
+    assert float(fresh.attenuation_unit) == UNIT
+    del state["attenuation_unit"]
+    fresh.load_state_dict(state)
+    assert float(fresh.attenuation_unit) == 1.0
+
+
+def test_a_trainer_gives_a_field_without_bounds_the_scans_unit(foot, tmp_path):
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "naf").config, method="naf", preset="tiny"))
+    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path, epochs=1, device="cpu")
+    assert float(scanner.model.attenuation_unit) == pytest.approx(scanner.model.loss_scale) and scanner.model.loss_scale > 1.0

@@ -123,6 +123,8 @@ class Trainer:
         torch.manual_seed(seed)
         self.model = CTModel(config.model, scale=scene.geometry.scale, device=self.device).to(self.device)
         self.model.loss_scale = loss_scale(scene)
+        if not self.model.has_surfaces:  # its network's outputs in the same unit (the bounds carry it for the others)
+            self.model.attenuation_unit.fill_(self.model.loss_scale)
         if self.model.loss_scale != 1.0:
             self._print(f"{label}: losses measured in units of {self.model.loss_scale:.4g} /m, the 99.5th percentile of the scan's "
                         f"FDK volume, which is above NAF's normalised {LOSS_SCALE_TOP:g} /m, so that they weigh as on NAF's "

@@ -31,7 +31,8 @@ class NAFFieldConfig(FieldConfig):
 
 
 class NAFField(Field):
-    """``get_outputs(points [P, 3] model units)`` gives ``mu [P]`` (data units, >= 0); no surfaces."""
+    """``get_outputs(points [P, 3] model units)`` gives ``mu [P]`` (>= 0, in units of ``CTModel.attenuation_unit``, 1 /m on
+    NAF-normalised scans, which ``CTModel.query`` multiplies in); no surfaces."""
 
     def __init__(self, config: NAFFieldConfig, *, encoding: nn.Module, num_materials: int | None = None):
         super().__init__(config)
