@@ -135,3 +135,30 @@ def test_a_trainer_gives_a_field_without_bounds_the_scans_unit(foot, tmp_path):
     cfg = presets.resolve(dataclasses.replace(registry.load("methods", "naf").config, method="naf", preset="tiny"))
     scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path, epochs=1, device="cpu")
     assert float(scanner.model.attenuation_unit) == pytest.approx(scanner.model.loss_scale) and scanner.model.loss_scale > 1.0
+
+
+def test_neas_wide_default_bounds_are_in_the_scans_unit(foot, tmp_path):
+    from kneas_method.fields.attenuation import default_bounds
+
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "neas-1m").config, method="neas-1m", preset="tiny"))
+    plain = Trainer(cfg, foot, tmp_path / "plain", epochs=1, device="cpu")  # the prior's trainer: no bounds given
+    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path / "scanner", epochs=1, device="cpu")
+    alphas, betas = default_bounds(1)
+    assert plain.model.bounds == (pytest.approx(alphas), pytest.approx(betas))
+    unit = scanner.model.loss_scale
+    assert unit > 1.0 and scanner.model.bounds == (pytest.approx([unit * a for a in alphas]), pytest.approx([unit * b for b in betas]))
+
+
+def test_the_wide_bounds_option_is_in_the_scans_unit(foot, tmp_path):
+    from kneas_method.engine.bounds_stage import estimate_bounds
+    from kneas_method.fields.attenuation import default_bounds
+
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny",
+                                              bounds_source="wide"))
+    alphas, betas = default_bounds(int(cfg.model.num_materials))
+    plain = estimate_bounds(cfg, foot, tmp_path, "cpu")
+    assert plain.alphas == alphas and plain.betas == betas
+    scanner = in_units(foot, UNIT)
+    unit = loss_scale(scanner)
+    scaled = estimate_bounds(cfg, scanner, tmp_path, "cpu")
+    assert scaled.alphas == pytest.approx([unit * a for a in alphas]) and scaled.betas == pytest.approx([unit * b for b in betas])

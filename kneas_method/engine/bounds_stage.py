@@ -222,8 +222,11 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     if config.bounds_source == "wide":
         from ..fields.attenuation import default_bounds
 
-        a, b = default_bounds(int(m.num_materials))
-        say("bounds: NeAS wide defaults")
+        from .loss_scale import loss_scale
+
+        unit = loss_scale(scene)  # the defaults are NAF-scale: in a scanner's scan, in its unit
+        a, b = ([unit * v for v in values] for values in default_bounds(int(m.num_materials)))
+        say("bounds: NeAS wide defaults" + (f", times the scan's unit {unit:.4g} /m" if unit != 1.0 else ""))
         return BoundsResult(a, b, int(m.num_materials), "wide (NeAS defaults)")
     # automatic: GMM (SPEC §4) on the prior model's volume (the paper) or on a classical reconstruction
     prior: Optional[PriorResult] = None

@@ -131,6 +131,9 @@ class Trainer:
                         "scale; the volume and the bounds stay in /m")
         if bounds is not None:
             self.model.set_bounds(*bounds)
+        elif self.model.has_surfaces and self.model.loss_scale != 1.0:  # NeAS's wide defaults are NAF-scale: in the scan's unit
+            alphas, betas = self.model.bounds
+            self.model.set_bounds([self.model.loss_scale * a for a in alphas], [self.model.loss_scale * b for b in betas])
         if self.model.quadrature == "voxel-planes":
             from ..occupancy import box_of
 
