@@ -38,6 +38,15 @@ def test_naf_scale_is_its_own_unit_and_a_scanners_is_brought_to_it(foot):
     assert loss_scale(scanner) > 1.0
 
 
+def rays(n_obj: int, n_air: int) -> dict:
+    """A training batch without projections: ``n_obj`` object rays, then ``n_air`` air rays, through the box."""
+    torch.manual_seed(1)
+    n = n_obj + n_air
+    o = torch.tensor([0.0, -3.0, 0.0]).expand(n, 3).clone()
+    d = torch.cat([torch.rand(n, 2) * 0.4 - 0.2, torch.ones(n, 1)], -1)[:, [0, 2, 1]]
+    return {"origins": o, "directions": d, "is_air": torch.arange(n) >= n_obj, "near": 2.0, "far": 4.0}
+
+
 def _model(bounds, unit: float):
     torch.manual_seed(0)
     cfg = presets.resolve(dataclasses.replace(methods.k_neas.config, preset="tiny"))
@@ -50,13 +59,8 @@ def _model(bounds, unit: float):
 def test_every_model_loss_of_a_scan_in_other_units_is_the_normalised_ones():
     bounds = ([0.2, 0.3, 0.5], [0.0, 0.2, 0.5])
     plain, scaled = _model(bounds, 1.0), _model(bounds, UNIT)
-    torch.manual_seed(1)
-    n_obj, n_air = 12, 4
-    o = torch.tensor([0.0, -3.0, 0.0]).expand(n_obj + n_air, 3).clone()
-    d = torch.cat([torch.rand(n_obj + n_air, 2) * 0.4 - 0.2, torch.ones(n_obj + n_air, 1)], -1)[:, [0, 2, 1]]
-    is_air = torch.arange(n_obj + n_air) >= n_obj
-    p = torch.where(is_air, 0.0, 0.3)
-    batch = {"origins": o, "directions": d, "is_air": is_air, "near": 2.0, "far": 4.0}
+    batch = rays(12, 4)
+    p = torch.where(batch["is_air"], 0.0, 0.3)
     for progress in (0.1, 0.5):  # with and without the floater term
         g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
         a = plain.loss_dict({**batch, "projections": p}, progress, generator=g1)
@@ -113,10 +117,7 @@ def test_a_field_without_bounds_gives_its_attenuation_in_the_scans_unit():
     points = torch.rand(64, 3) * 1.6 - 0.8
     with torch.no_grad():
         assert torch.allclose(models[1].query(points)["mu"], UNIT * models[0].query(points)["mu"], rtol=1e-5)
-    torch.manual_seed(1)
-    o = torch.tensor([0.0, -3.0, 0.0]).expand(8, 3).clone()
-    d = torch.cat([torch.rand(8, 2) * 0.4 - 0.2, torch.ones(8, 1)], -1)[:, [0, 2, 1]]
-    batch = {"origins": o, "directions": d, "is_air": torch.zeros(8, dtype=torch.bool), "near": 2.0, "far": 4.0}
+    batch = rays(8, 0)
     a = models[0].loss_dict({**batch, "projections": torch.full((8,), 0.3)}, 0.5, generator=torch.Generator().manual_seed(3))
     b = models[1].loss_dict({**batch, "projections": torch.full((8,), 0.3 * UNIT)}, 0.5, generator=torch.Generator().manual_seed(3))
     assert float(b["total"].detach()) == pytest.approx(float(a["total"].detach()), rel=1e-4)
