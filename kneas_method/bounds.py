@@ -377,13 +377,22 @@ class GMMBounds:
                     raise KneasError(f"n_components={k} but the samples hold only {n_unique} distinct values; choose fewer materials")
                 fit_k(k)
             inner = self._adopt(models[k], k, kept)
-        elif self.k_rule == "bic":
-            k = min(self.bic_, key=self.bic_.get)
-            inner = self._adopt(models[k], k, kept)
+        elif self.k_rule == "bic":  # the lowest BIC whose boundaries lie below the upper bound (see bic-valleys)
+            skipped = []
+            for k in sorted(self.bic_, key=self.bic_.get):
+                inner = self._adopt(models[k], k, kept)
+                if not inner or inner[-1] < upper:
+                    break
+                skipped.append(k)
+            if skipped:
+                self.warnings_.append(f"K = {', '.join(map(str, skipped))} (lower BIC) put a boundary above the upper bound "
+                                      f"{upper:.4g}; K = {k} used")
         else:  # bic-valleys: the lowest BIC among the K whose boundaries can all be placed
             for k in sorted(self.bic_, key=self.bic_.get):
                 inner = self._adopt(models[k], k, kept)
-                self.placeable_[k] = not self.warnings_
+                # every boundary a valley, and below the upper bound (a tail of extreme values, e.g. the end
+                # slices of a scan truncated along its axis, can put a component's valley above it)
+                self.placeable_[k] = not self.warnings_ and (not inner or inner[-1] < upper)
                 if self.placeable_[k]:
                     break
 

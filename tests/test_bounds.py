@@ -398,3 +398,16 @@ def test_bounds_of_a_noisy_volume_after_the_edge_preserving_filter_keep_each_lev
     out = histogram_smoothing(torch.from_numpy(noisy))  # torch in, numpy out, same values
     np.testing.assert_allclose(out, histogram_smoothing(noisy), atol=1e-6)
     assert out.shape == noisy.shape and out.dtype == np.float32
+
+
+@pytest.mark.parametrize("rule", ["bic", "bic-valleys"])
+def test_a_tail_of_extreme_values_does_not_put_a_boundary_above_the_upper_bound(rule):
+    # two materials and 0.3 % of values far above them, as the end slices of a scan truncated along its axis
+    rng = np.random.default_rng(0)
+    values = np.concatenate([rng.normal(0.2, 0.01, 10_000), rng.normal(0.5, 0.01, 10_000), rng.normal(5.0, 0.3, 60)])
+    g = GMMBounds(max_components=4, k_rule=rule, n_init=2).fit(values)  # raised "upper bound ... does not exceed" before
+    b = g.boundaries_
+    assert np.all(np.diff(b) > 0) and b[-1] == pytest.approx(1.15 * np.percentile(values, 99.5))
+    assert g.bic_[g.n_components_] > min(g.bic_.values())  # a K of lower BIC was passed over: its boundary lay above b[-1]
+    if rule == "bic":
+        assert any("above the upper bound" in w for w in g.warnings_)
