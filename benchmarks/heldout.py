@@ -30,6 +30,9 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
 * ``knee-physical``: the same knee scan with the attenuation a scanner gives (added in the 68th
   stop): 75 times the levels, muscle at 20 /m as water at about 70 keV, so that the line integrals
   reach ~5 instead of ~0.07 (the built-in scenes' NAF-normalised volumes lie within [0, 1] /m).
+* ``knee-long``: the knee with the leg going on 130 mm beyond the box at both ends (added in the 68th
+  stop), as a scanner sees a leg: every view's top and bottom rows cross tissue outside the
+  reconstructed box (a scan truncated along the axis).
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object
   (not piecewise constant: TV's weak case), projected with the Joseph projector, with noise.
 
@@ -49,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy", "head-noisy",
-          "knee", "knee-physical")
+          "knee", "knee-physical", "knee-long")
 
 
 def head_phantom():
@@ -77,12 +80,14 @@ def head_phantom():
 KNEE_PHYSICAL_SCALE = 75.0
 
 
-def knee_phantom(scale: float = 1.0):
+def knee_phantom(scale: float = 1.0, extend_mm: float = 0.0):
     """A knee: fat around muscle, femur, tibia, fibula and patella (cortical shells around marrow),
-    within ±70 mm across and ±105 mm along the leg (z); levels times ``scale``."""
+    within ±70 mm across and ±105 mm along the leg (z); levels times ``scale``; the leg and the bones'
+    shafts ``extend_mm`` longer at both ends."""
     from kneas_method.data.phantoms import Phantom, Primitive
 
     FAT, MUSCLE, MARROW, CORTEX = 1, 2, 3, 4
+    e = float(extend_mm)
 
     def p(kind, centre, half, material, priority, euler=(0, 0, 0), name=""):
         return Primitive(kind, centre, half, material=material, priority=priority, euler=euler, name=name)
@@ -96,15 +101,15 @@ def knee_phantom(scale: float = 1.0):
         name="knee", description="knee: fat, muscle, four bones (held-out benchmark scene)",
         materials=("fat", "muscle", "marrow", "cortical bone"), levels=tuple(scale * v for v in (0.16, 0.27, 0.47, 0.86)),
         primitives=(
-            p("cylinder", (0, 0, 0), (62, 58, 100), FAT, 1, name="skin and fat"),
-            p("cylinder", (0, -2, 0), (55, 50, 101), MUSCLE, 2, name="muscle"),
+            p("cylinder", (0, 0, 0), (62, 58, 100 + e), FAT, 1, name="skin and fat"),
+            p("cylinder", (0, -2, 0), (55, 50, 101 + e), MUSCLE, 2, name="muscle"),
             p("ellipsoid", (0, 34, -8), (30, 10, 22), FAT, 3, name="infrapatellar fat pad"),
-            *bone("cylinder", (0, -4, 55), (15, 14, 50), 4, 10, (0, 6, 0), "femur shaft"),
+            *bone("cylinder", (0, -4, 55 + e / 2), (15, 14, 50 + e / 2), 4, 10, (0, 6, 0), "femur shaft"),
             *bone("ellipsoid", (-19, -6, 12), (17, 24, 20), 3, 12, (0, 0, 8), "lateral condyle"),
             *bone("ellipsoid", (19, -6, 12), (17, 24, 20), 3, 14, (0, 0, -8), "medial condyle"),
             *bone("ellipsoid", (0, -4, -16), (40, 30, 12), 3, 16, name="tibial plateau"),
-            *bone("cylinder", (0, -6, -62), (16, 15, 45), 4, 18, (0, -4, 0), "tibia shaft"),
-            *bone("cylinder", (-36, -16, -55), (6, 6, 40), 2.5, 20, (0, 5, 0), "fibula"),
+            *bone("cylinder", (0, -6, -62 - e / 2), (16, 15, 45 + e / 2), 4, 18, (0, -4, 0), "tibia shaft"),
+            *bone("cylinder", (-36, -16, -55 - e / 2), (6, 6, 40 + e / 2), 2.5, 20, (0, 5, 0), "fibula"),
             *bone("ellipsoid", (0, 42, 22), (18, 8, 20), 3, 22, (0, 0, 0), "patella"),
         ),
     )
@@ -149,10 +154,11 @@ def heldout_scene(name: str):
         scene = simulate_phantom(name.split("-")[0], SimulationConfig(n_train=50, n_val=10, noise=True))
         scene.name = name
         return scene
-    if name in ("knee", "knee-physical"):
+    if name in ("knee", "knee-physical", "knee-long"):
         cfg = SimulationConfig(n_voxel=(112, 112, 144), voxel_mm=(1.25, 1.25, 1.5), dso_mm=750.0, dsd_mm=1200.0,
                                n_detector=192, n_train=45, n_val=10, total_angle_deg=360.0)
-        scene = simulate_phantom(knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0), cfg)
+        phantom = knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0, 130.0 if name == "knee-long" else 0.0)
+        scene = simulate_phantom(phantom, cfg)
         scene.name = name
         return scene
     if name == "head-textured-noisy":

@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from ..console import say
+from ..data.truncation import truncation_warning
 from . import report
 from .loading import load_scene, resolve_device
 from .run_dir import check_writable, create_run_dir, read_json, save_run_config
@@ -46,5 +47,8 @@ def train(config) -> int:
         run_dir = create_run_dir(config.output_dir, scene.name, config.method)
         save_run_config(run_dir, config)
         say(f"run folder: {run_dir}")
+    warning = truncation_warning(scene)
+    if warning is not None:
+        say(f"[yellow]warning:[/yellow] {warning}")
     say(f"device: {device}; torch threads: {torch.get_num_threads()}")
     return config.setup(scene=scene, run_dir=run_dir, device=device, started=started).run()
