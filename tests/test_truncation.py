@@ -3,6 +3,7 @@
 import dataclasses
 
 import numpy as np
+import pytest
 
 from kneas_method.data.naf import load_naf, save_naf
 from kneas_method.data.scene import Views
@@ -35,3 +36,10 @@ def test_a_truncated_scan_is_named_in_a_warning_and_still_reconstructed(tmp_path
     assert code == 0 and "warning: the object reaches the detector's first or last row in 4 of 4 training views" in out
     code, out, _ = run(["fdk", "--scene", str(path), "--preset", "tiny", "--output-dir", str(tmp_path / "o")], capsys)
     assert code == 0 and "warning: the object reaches" not in out
+    from kneas_method.cli import data as data_cli
+
+    for scene_path, warned in ((tmp_path / "long.pickle", True), (path, False)):  # kneas-data inspect says it too
+        with pytest.raises(SystemExit) as exc:
+            data_cli.main(["inspect", str(scene_path)])
+        out = capsys.readouterr().out
+        assert exc.value.code == 0 and ("warning: the object reaches" in out) == warned

@@ -257,6 +257,11 @@ def _inspect(args) -> int:
         )
     if threshold > 0:
         c.print(f"  noise: sigma {sigma:.3g} in air (from the negative values); air = p <= {threshold:.3g}")
+    from ..data.truncation import truncation_warning
+
+    warning = truncation_warning(scene)
+    if warning is not None:
+        c.print(f"  [yellow]warning:[/yellow] {warning}", soft_wrap=True)
     if scene.image is not None:
         c.print(f"  image {tuple(scene.image.shape)} {scene.image.dtype}, values {_range(scene.image)}")
     else:
