@@ -259,7 +259,7 @@ def _inspect(args) -> int:
         c.print(f"  noise: sigma {sigma:.3g} in air (from the negative values); air = p <= {threshold:.3g}")
     from ..data.truncation import truncation_warning
 
-    warning = truncation_warning(scene)
+    warning = truncation_warning(scene, threshold)
     if warning is not None:
         c.print(f"  [yellow]warning:[/yellow] {warning}", soft_wrap=True)
     if scene.image is not None:

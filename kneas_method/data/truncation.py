@@ -30,12 +30,13 @@ def axial_truncation(projections, air_threshold: float) -> float:
     return float(np.mean((first >= ROW_OBJECT_SHARE) | (last >= ROW_OBJECT_SHARE)))
 
 
-def truncation_warning(scene) -> str | None:
-    """One line for the user when ``scene``'s object goes on beyond its box along the axis, else None."""
+def truncation_warning(scene, air_threshold: float | None = None) -> str | None:
+    """One line for the user when ``scene``'s object goes on beyond its box along the axis, else None;
+    ``air_threshold``: the training projections' noise-aware one where the caller has it already."""
     from ..datamanagers.ct import noise_air_threshold
 
     p = np.asarray(scene.train.projections)
-    share = axial_truncation(p, noise_air_threshold(p)[0])
+    share = axial_truncation(p, noise_air_threshold(p)[0] if air_threshold is None else air_threshold)
     if share < TRUNCATED_VIEW_SHARE:
         return None
     return (f"the object reaches the detector's first or last row in {round(share * len(p))} of {len(p)} training views: it goes on "
