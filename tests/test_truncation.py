@@ -1,15 +1,18 @@
 """A scan whose object goes on beyond the box along the rotation axis is named in a warning (data.truncation)."""
 
 import dataclasses
+import json
+import math
 
 import numpy as np
 import pytest
+import torch
 
 from kneas_method.data.naf import load_naf, save_naf
 from kneas_method.data.scene import Views
 from kneas_method.data.truncation import ROW_OBJECT_SHARE, axial_truncation, truncation_warning
 
-from conftest import run, simulated_foot
+from conftest import run, run_dir_of, simulated_foot
 
 
 def test_axial_truncation_counts_the_views_whose_end_rows_see_the_object():
@@ -43,3 +46,129 @@ def test_a_truncated_scan_is_named_in_a_warning_and_still_reconstructed(tmp_path
             data_cli.main(["inspect", str(scene_path)])
         out = capsys.readouterr().out
         assert exc.value.code == 0 and ("warning: the object reaches" in out) == warned
+
+
+# ------------------------------------------------------------------ the longer box the views are fitted on
+from kneas_method.classical.projector import forward  # noqa: E402
+from kneas_method.classical.reconstruct import reconstruct  # noqa: E402
+from kneas_method.data.scene import Scene  # noqa: E402
+from kneas_method.data.truncation import axial_margin, extend_axially, fitting_scene  # noqa: E402
+from kneas_method.engine.evaluate import evaluate_volume  # noqa: E402
+from kneas_method.evaluation.metrics import volume_metrics  # noqa: E402
+from kneas_method.geometry import Geometry  # noqa: E402
+
+
+def _geometry(mode="cone", nz=16, off_z=0.0, rows=24, off_v=0.0):
+    return Geometry.from_mm(mode=mode, DSD=600.0, DSO=400.0, nDetector=(24, rows), dDetector=(3.0, 3.0), nVoxel=(16, 16, nz),
+                            dVoxel=(4.0, 4.0, 4.0), offOrigin=(0.0, 0.0, off_z), offDetector=(0.0, off_v))
+
+
+def _reach_of_rays(geometry, samples=400) -> float:
+    """The naive version: the largest |z| of points on every detector ray within the cylinder about
+    the axis through the box's xy corners (model units)."""
+    angles = np.array([0.0, 1.0])
+    o, d = geometry.rays(angles, dtype=torch.float64)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    hx, hy, _ = geometry.volume_half_size
+    r = math.hypot(hx, hy)
+    t = torch.linspace(0.0, 2.0 * geometry.dso, samples, dtype=torch.float64)
+    p = o[:, None] + t[None, :, None] * d[:, None]
+    inside = p[..., 0].hypot(p[..., 1]) <= r
+    return float(p[..., 2].abs()[inside].max())
+
+
+@pytest.mark.parametrize("mode,rows,off_v,added", [("cone", 24, 0.0, False), ("cone", 40, 0.0, True), ("cone", 32, 12.0, True),
+                                                   ("cone", 80, 0.0, True), ("parallel", 40, 0.0, True)])
+def test_the_longer_box_reaches_as_far_as_the_rays_or_the_fields_domain(mode, rows, off_v, added):
+    g = _geometry(mode, rows=rows, off_v=off_v)
+    n = axial_margin(g)
+    assert (n > 0) == added
+    half = g.volume_half_size[2]
+    reach = _reach_of_rays(g)
+    assert half + n * g.d_voxel[2] <= 1.0 + 1e-9  # within the fields' domain
+    if half + (n + 1) * g.d_voxel[2] <= 1.0:  # not capped: the box holds every ray's stretch, and no more than a slice beyond
+        assert half + n * g.d_voxel[2] >= reach - 1e-9
+        assert n == 0 or half + (n - 1) * g.d_voxel[2] < reach
+    assert axial_margin(g, reach=half) == 0  # no room: nothing added
+
+
+def test_the_fitting_box_is_the_scene_itself_unless_the_object_goes_on(tmp_path):
+    path = simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4)
+    scene = load_naf(path)
+    box = fitting_scene(scene)
+    assert box.scene is scene and box.slices == 0 and box.crop(scene.image) is scene.image
+    longer = extend_axially(scene, 3)
+    g, h = scene.geometry, longer.geometry
+    assert h.n_voxel == (*g.n_voxel[:2], g.n_voxel[2] + 6) and h.scale == g.scale and h.d_voxel == g.d_voxel
+    z, z_long = g.voxel_axes(dtype=torch.float64)[2], h.voxel_axes(dtype=torch.float64)[2]
+    assert torch.allclose(z_long[3:-3], z)  # the scene's voxel centres are the longer box's middle ones
+    assert longer.image is None and longer.train is scene.train
+
+
+def _long_rod_scene():
+    """A box of 16^3 voxels of 4 mm inside a rod twice as long: the object goes on beyond both ends."""
+    g = _geometry(nz=16, rows=40)  # the detector sees more than the box's length
+    long = dataclasses.replace(g, n_voxel=(16, 16, 48))
+    x, y, _ = (a.numpy() for a in long.voxel_axes(dtype=torch.float64))
+    rr = np.hypot(*np.meshgrid(x, y, indexing="ij"))
+    rod = np.where(rr < 0.6 * g.volume_half_size[0], 0.5, 0.0)[..., None] + np.zeros(48)
+    rod[(rr < 0.25 * g.volume_half_size[0])] = 1.0
+    rod = rod.astype(np.float32)
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    val = np.array([0.1, 1.7])
+    proj = forward(rod, long, angles)
+    val_proj = forward(rod, long, val)
+    return Scene("rod", g, Views(angles, proj), Views(val, val_proj), image=rod[..., 16:32].copy())
+
+
+def test_fitting_a_truncated_scan_on_the_longer_box_mends_the_end_slices():
+    scene = _long_rod_scene()
+    box = fitting_scene(scene)
+    assert box.slices > 0 and box.scene.geometry.n_voxel[2] == 16 + 2 * box.slices
+    plain = reconstruct("sart", scene).volume
+    longer = box.crop(np.asarray(reconstruct("sart", box.scene).volume))
+    assert longer.shape == scene.image.shape
+    ends = np.r_[0:3, 13:16]
+    psnr = lambda v: volume_metrics(np.asarray(v)[..., ends], scene.image[..., ends], ssim=False)["psnr3d"]  # noqa: E731
+    assert psnr(longer) > psnr(plain) + 3.0
+
+
+def _eval(run_dir, capsys):
+    from kneas_method.cli.eval import main as eval_main
+
+    with pytest.raises(SystemExit) as exc:
+        eval_main([str(run_dir), "--no-figures", "-o", str(run_dir / "ev")])
+    assert exc.value.code == 0
+    capsys.readouterr()
+    return json.loads((run_dir / "ev" / "metrics.json").read_text())
+
+
+def test_runs_on_a_truncated_scan_fit_the_longer_box_and_score_the_scenes(tmp_path, capsys):
+    scene = _long_rod_scene()
+    save_naf(scene, tmp_path / "rod.pickle")
+    box = fitting_scene(load_naf(tmp_path / "rod.pickle"))
+    code, out, _ = run(["sart", "--scene", str(tmp_path / "rod.pickle"), "--preset", "tiny", "--output-dir", str(tmp_path / "o")], capsys)
+    assert code == 0 and f"fitted on a box {box.slices} slices" in out
+    sart = run_dir_of(out)
+    metrics = json.loads((sart / "metrics.json").read_text())
+    assert metrics["fitting_box_extra_slices"] == box.slices
+    volume = np.load(sart / "volume.npy")
+    assert volume.shape == scene.image.shape  # the scene's box
+    cropped_only = evaluate_volume(volume, scene)["psnr2d"]  # held-out views of the box alone miss the rod beyond it
+    assert metrics["psnr2d"] > cropped_only + 5.0
+    assert _eval(sart, capsys)["psnr2d"] == pytest.approx(metrics["psnr2d"], abs=1e-6)  # kneas-eval projects the longer box too
+
+    code, out, _ = run(["k-neas", "--scene", str(tmp_path / "rod.pickle"), "--preset", "tiny", "--model.occupancy-grid", "True",
+                        "--output-dir", str(tmp_path / "o")], capsys)
+    assert code == 0
+    neural = run_dir_of(out)
+    metrics = json.loads((neural / "metrics.json").read_text())
+    assert metrics["fitting_box_extra_slices"] == box.slices
+    from kneas_method.engine.loading import load_run
+
+    model = load_run(neural).model
+    reach = box.scene.geometry.volume_half_size[2]
+    assert model.occupancy_box[1, 2].item() == pytest.approx(reach, rel=1e-5)  # empty space carved over the longer box
+    assert model.occupancy_box[1, 2].item() > scene.geometry.volume_half_size[2] * 1.1
+    again = _eval(neural, capsys)
+    assert again["psnr2d"] == pytest.approx(metrics["psnr2d"], abs=1e-4) and again["psnr3d"] == pytest.approx(metrics["psnr3d"], abs=1e-4)

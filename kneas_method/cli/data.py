@@ -257,11 +257,9 @@ def _inspect(args) -> int:
         )
     if threshold > 0:
         c.print(f"  noise: sigma {sigma:.3g} in air (from the negative values); air = p <= {threshold:.3g}")
-    from ..data.truncation import truncation_warning
+    from ..data.truncation import fitting_scene
 
-    warning = truncation_warning(scene, threshold)
-    if warning is not None:
-        c.print(f"  [yellow]warning:[/yellow] {warning}", soft_wrap=True)
+    fitting_scene(scene, threshold, say=lambda line: c.print(f"  {line}", soft_wrap=True))
     if scene.image is not None:
         c.print(f"  image {tuple(scene.image.shape)} {scene.image.dtype}, values {_range(scene.image)}")
     else:

@@ -50,7 +50,7 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
 
     _say(f"held-out views and volume: {len(run.scene.val)} views, {run.scene.geometry.n_voxel} voxels")
     if run.model is None:
-        metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True)
+        metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True, fitted=run.fitted)
     else:
         metrics, (proj, vol) = evaluate_model(run.model, run.scene, run.config, device, return_arrays=True)
     if run.has_surfaces and run.scene.labels is not None:

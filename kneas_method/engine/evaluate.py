@@ -30,6 +30,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
+from ..data.truncation import fitting_scene
 from ..evaluation.metrics import projection_metrics, volume_metrics
 
 __all__ = ["evaluate_model", "evaluate_volume", "render_views", "sample_volume", "model_metrics_from_arrays",
@@ -131,9 +132,14 @@ def eval_projections(config) -> str:
         return "rendered"
 
 
-def model_arrays(model, scene, config, device, *, views: Progress = None, voxels: Progress = None) -> tuple[np.ndarray, np.ndarray]:
+def model_arrays(model, scene, config, device, *, views: Progress = None, voxels: Progress = None,
+                 fitting=None) -> tuple[np.ndarray, np.ndarray]:
     """The held-out projections ``[N, nV, nU]`` and the volume at the voxel centres ``[nx, ny, nz]``
     (data units) that score a model.
+
+    Where the run fitted the views on a longer box (``fitting``, by default
+    ``data.truncation.fitting_scene(scene)``), the held-out views see that box, what lies beyond
+    the scene's included, and the volume is the scene's part of it.
 
     The projections are rendered through the field (:func:`render_views`) or, with
     ``trainer.eval_projections = volume``, the volume projected by the Joseph projector
@@ -142,8 +148,10 @@ def model_arrays(model, scene, config, device, *, views: Progress = None, voxels
     held-out views, ``voxels(done, total)`` voxels.
     """
     device = torch.device(device)
-    volume = sample_volume(model, scene.geometry, device=device, progress=voxels)
-    return held_out_projections(model, scene, config, device, scene.val.angles, volume=volume, progress=views), volume
+    box = fitting_scene(scene) if fitting is None else fitting
+    fitted = sample_volume(model, box.scene.geometry, device=device, progress=voxels)
+    proj = held_out_projections(model, box.scene, config, device, scene.val.angles, volume=fitted, progress=views)
+    return proj, np.ascontiguousarray(box.crop(fitted))
 
 
 def held_out_projections(model, scene, config, device, angles, *, volume: Optional[np.ndarray] = None,
@@ -186,17 +194,20 @@ def evaluate_model(model, scene, config, device, *, return_arrays: bool = False)
     return (metrics, (proj, volume)) if return_arrays else metrics
 
 
-def evaluate_volume(volume, scene, *, return_arrays: bool = False, progress: Progress = None):
+def evaluate_volume(volume, scene, *, return_arrays: bool = False, progress: Progress = None, fitted=None):
     """Metrics of a voxel volume [nx, ny, nz] (data units, the scene's grid).
 
     2D: the volume is forward-projected (Joseph projector, one sample per voxel slice) to every
     held-out view and scored like a model's rendering; 3D: compared with the
-    ground truth, if any. ``progress(done_views, total_views)``.
+    ground truth, if any. ``progress(done_views, total_views)``. ``fitted``: ``(geometry,
+    volume)``, the reconstruction on the longer box the views were fitted on, whose middle is
+    ``volume`` (``data.truncation.FittingBox``); the held-out views are projected from it then.
     """
     from ..classical.projector import forward
 
     vol = np.asarray(volume.detach().cpu() if hasattr(volume, "detach") else volume, dtype=np.float32)
-    proj = forward(vol, scene.geometry, np.asarray(scene.val.angles), progress=progress)
+    geometry, projected = (scene.geometry, vol) if fitted is None else fitted
+    proj = forward(projected, geometry, np.asarray(scene.val.angles), progress=progress)
     metrics = model_metrics_from_arrays(proj, scene, vol)
     metrics["projections_2d"] = "volume"
     return (metrics, (proj, vol)) if return_arrays else metrics
@@ -213,8 +224,9 @@ class Evaluation:
     seconds: float
 
 
-def evaluate_model_stage(model, scene, config, device, console) -> Evaluation:
-    """:func:`evaluate_model` with progress shown (voxels, then held-out views) on ``console``.
+def evaluate_model_stage(model, scene, config, device, console, fitting=None) -> Evaluation:
+    """:func:`evaluate_model` with progress shown (voxels, then held-out views) on ``console``
+    (``fitting``: as :func:`model_arrays`).
 
     The volume at the voxel centres is always sampled: 3D metrics where the scene has a
     ground truth, the slice figure in any case."""
@@ -222,25 +234,27 @@ def evaluate_model_stage(model, scene, config, device, console) -> Evaluation:
 
     t0 = time.perf_counter()
     how = eval_projections(config)
-    n_views, n_voxels = len(scene.val), int(np.prod(scene.geometry.n_voxel))
+    fitting = fitting_scene(scene) if fitting is None else fitting
+    n_views, n_voxels = len(scene.val), int(np.prod(fitting.scene.geometry.n_voxel))
     info = (f"{n_views} held-out views projected from the volume (Joseph)" if how == "volume"
             else f"{n_views} held-out views x {_eval_samples(config)} samples")
     with stage_progress(console, unit="views") as progress:
         vtask = progress.add_task("volume", total=n_voxels, info="attenuation at the voxel centres", unit="voxels")
         task = progress.add_task("evaluation", total=n_views, info=info)
         proj, volume = model_arrays(model, scene, config, device, views=lambda d, t: progress.update(task, completed=d),
-                                    voxels=lambda d, t: progress.update(vtask, completed=d))
+                                    voxels=lambda d, t: progress.update(vtask, completed=d), fitting=fitting)
     metrics = model_metrics_from_arrays(proj, scene, volume)
     metrics["projections_2d"] = how
     return Evaluation(metrics, proj, volume, time.perf_counter() - t0)
 
 
-def evaluate_volume_stage(volume, scene, console) -> Evaluation:
+def evaluate_volume_stage(volume, scene, console, fitted=None) -> Evaluation:
     """:func:`evaluate_volume` with progress shown (held-out views projected) on ``console``."""
     from .progress import stage_progress
 
     t0 = time.perf_counter()
     with stage_progress(console, unit="views") as progress:
         task = progress.add_task("evaluation", total=len(scene.val), info="projecting the volume to the held-out views")
-        metrics, (proj, vol) = evaluate_volume(volume, scene, return_arrays=True, progress=lambda d, t: progress.update(task, completed=d))
+        metrics, (proj, vol) = evaluate_volume(volume, scene, return_arrays=True, fitted=fitted,
+                                                 progress=lambda d, t: progress.update(task, completed=d))
     return Evaluation(metrics, proj, vol, time.perf_counter() - t0)

@@ -282,6 +282,8 @@ class LoadedRun:
         checkpoint_path: the checkpoint loaded (None for FDK runs).
         step: the checkpoint's training step (None for FDK runs).
         notes: one-line remarks for the user (skipped damaged checkpoints, ...).
+        fitted: a classical run's ``(geometry, volume)`` on the longer box its views were fitted on
+            (``volume_fitted_box.npy``, ``data.truncation.FittingBox``), or None.
     """
 
     config: Any
@@ -292,6 +294,7 @@ class LoadedRun:
     checkpoint_path: Optional[Path]
     step: Optional[int] = None
     notes: list[str] = field(default_factory=list)
+    fitted: Optional[tuple] = None
 
     @property
     def method(self) -> str:
@@ -360,6 +363,23 @@ def _cpu_encoding(config, device: torch.device):
     return config, False
 
 
+def _fitted_volume(run_dir: Path, scene) -> Optional[tuple]:
+    """A classical run's reconstruction on the longer box its views were fitted on, with that box's
+    geometry, where the run wrote one that fits ``scene``'s (``classical_pipeline.FITTED_VOLUME``); else None."""
+    from ..data.truncation import fitting_scene
+    from .classical_pipeline import FITTED_VOLUME
+
+    path = Path(run_dir) / FITTED_VOLUME
+    if not path.is_file():
+        return None
+    box = fitting_scene(scene)
+    try:
+        volume = np.load(path, allow_pickle=False).astype(np.float32, copy=False)
+    except (OSError, ValueError):
+        return None
+    return (box.scene.geometry, volume) if box.slices and tuple(volume.shape) == tuple(box.scene.geometry.n_voxel) else None
+
+
 def load_run(
     run_dir_or_checkpoint: Union[str, Path],
     *,
@@ -413,7 +433,7 @@ def load_run(
             raise KneasError(f"{vol_path} cannot be read ({exc}); run the {config.method} reconstruction again") from None
         if tuple(volume.shape) != tuple(sc.geometry.n_voxel):
             raise KneasError(f"{vol_path} has shape {volume.shape} but scene {sc.name!r} has {tuple(sc.geometry.n_voxel)} voxels; pass the scene it was reconstructed on")
-        return LoadedRun(config, None, volume, sc, run_dir, None, None, notes)
+        return LoadedRun(config, None, volume, sc, run_dir, None, None, notes, fitted=_fitted_volume(run_dir, sc))
 
     if ckpt_file is not None:
         state = load_checkpoint_file(ckpt_file, method=config.method, map_location="cpu")

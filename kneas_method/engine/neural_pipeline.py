@@ -1,6 +1,8 @@
 """The pipeline of a neural run: (bounds) -> (warm start) -> training -> evaluation -> report.
 
-Stages (each returns a typed result):
+Stages (each returns a typed result). Every stage up to the trained model works on the box the views
+are fitted on (``data.truncation.fitting_scene``: the scene's own, or longer along the axis where the
+object goes on beyond it, in the same model units); the evaluation and the report on the scene's.
 
 1. **bounds** (fields with surfaces): ``bounds_stage.estimate_bounds`` -> ``BoundsResult``,
    kept as ``bounds.json`` (reused on resume); K (BIC, the file, or ``--num-materials``)
@@ -27,6 +29,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..console import EXIT_INTERRUPTED, console, say
+from ..data.truncation import FittingBox
 from ..errors import ConfigError
 from ..model import field_has_surfaces
 from . import report
@@ -62,8 +65,9 @@ def _interrupted(run_dir: Path, message: str) -> int:
 class NeuralPipeline:
     """``NeuralPipeline(config, scene=, run_dir=, device=, started=).run() -> exit code``."""
 
-    def __init__(self, config, *, scene, run_dir: Path, device, started: float = 0.0):
+    def __init__(self, config, *, scene, run_dir: Path, device, started: float = 0.0, fitting: Optional[FittingBox] = None):
         self.config, self.scene, self.run_dir, self.device = config, scene, Path(run_dir), device
+        self.fitting = fitting or FittingBox(scene)
         self.started = started or time.perf_counter()
         self.classical_seconds = 0.0
         self._classical: dict = {}
@@ -72,7 +76,7 @@ class NeuralPipeline:
     def classical(self, algorithm: str):
         """The run's classical reconstruction by ``algorithm``, computed once."""
         if algorithm not in self._classical:
-            rec = classical_volume(algorithm, self.config, self.scene, self.run_dir, self.device)
+            rec = classical_volume(algorithm, self.config, self.fitting.scene, self.run_dir, self.device)
             self._classical[algorithm] = rec
             self.classical_seconds += rec.seconds
         return self._classical[algorithm]
@@ -92,7 +96,7 @@ class NeuralPipeline:
             volume = None
             if config.bounds_volume != "prior" and config.bounds is None and config.model.alphas is None and config.bounds_source == "auto":
                 volume = self.classical(config.bounds_volume).volume
-            result = estimate_bounds(config, self.scene, self.run_dir, self.device, volume=volume)
+            result = estimate_bounds(config, self.fitting.scene, self.run_dir, self.device, volume=volume)
             write_json(path, result.to_json())
         if config.model.selector == "hard" and result.K != 2:
             raise ConfigError(f"method {config.method!r} uses the hard selector (2 materials) but the bounds have K = {result.K}; give 2-material bounds")
@@ -107,6 +111,7 @@ class NeuralPipeline:
     # -------------------------------------------------------------------- run
     def run(self) -> int:
         run_dir, scene, device = self.run_dir, self.scene, self.device
+        fit = self.fitting.scene  # the views are fitted on its box; the model is scored on the scene's
         tb = tensorboard_writer(run_dir)
         try:
             bounds = self.bounds()
@@ -118,7 +123,7 @@ class NeuralPipeline:
                 config = dataclasses.replace(config, num_materials=bounds.K, model=model)
                 save_run_config(run_dir, config)
             warm = self.warm_start()
-            trainer = train_stage(config, scene, run_dir, epochs=config.trainer.epochs, device=device,
+            trainer = train_stage(config, fit, run_dir, epochs=config.trainer.epochs, device=device,
                                   bounds=None if bounds is None else (bounds.alphas, bounds.betas), label="model", tb=tb, warm=warm)
         except StageInterrupted as exc:
             return _interrupted(run_dir, f"[yellow]interrupted at step {exc.step}[/]: checkpoint {exc.checkpoint or 'no checkpoint (none written yet)'}")
@@ -128,16 +133,16 @@ class NeuralPipeline:
             if tb is not None:
                 tb.flush()
         try:
-            correction = correct_stage(trainer, scene, config, device)
+            correction = correct_stage(trainer, fit, config, device)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted during the correction[/]; training is complete (checkpoint {trainer.last_checkpoint})")
         try:
-            config, bounds = materials_stage(trainer, scene, config, bounds, run_dir)
+            config, bounds = materials_stage(trainer, fit, config, bounds, run_dir)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted while the materials were found again[/]; training and the correction are "
                                 f"complete (checkpoint {trainer.last_checkpoint})")
         try:
-            evaluation = evaluate_model_stage(trainer.model, scene, config, device, console)
+            evaluation = evaluate_model_stage(trainer.model, scene, config, device, console, fitting=self.fitting)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted during the evaluation[/]; training is complete (checkpoint {trainer.last_checkpoint})")
         if tb is not None:
@@ -150,4 +155,4 @@ class NeuralPipeline:
         metrics = report.neural_metrics(config, scene, trainer, bounds, evaluation, device, classical_time_s=self.classical_seconds,
                                         classical_volume=used[0] if len(used) == 1 else (used or None),
                                         session_wall_time_s=time.perf_counter() - self.started, correction=correction)
-        return report.finish(run_dir, metrics)
+        return report.finish(run_dir, report.with_fitting_box(metrics, self.fitting))

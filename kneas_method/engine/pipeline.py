@@ -5,7 +5,8 @@
 views made from training views when the scene has none), creates the run folder
 (``DIR/<scene>/<method>/<timestamp>``, or the given one with ``--resume``),
 writes ``config.json`` and hands over to the pipeline of the run's kind,
-``config.setup(...)``: :class:`~.neural_pipeline.NeuralPipeline` for
+``config.setup(...)`` with the box the views are fitted on (``data.truncation.fitting_scene``:
+the scene's own, or longer along the axis where the object goes on beyond it): :class:`~.neural_pipeline.NeuralPipeline` for
 :class:`~kneas_method.methods.TrainConfig`,
 :class:`~.classical_pipeline.ClassicalPipeline` for
 :class:`~kneas_method.methods.ClassicalConfig`, or a plugin's own.
@@ -23,7 +24,7 @@ from pathlib import Path
 import torch
 
 from ..console import say
-from ..data.truncation import truncation_warning
+from ..data.truncation import fitting_scene
 from . import report
 from .loading import load_scene, resolve_device
 from .run_dir import check_writable, create_run_dir, read_json, save_run_config
@@ -47,8 +48,6 @@ def train(config) -> int:
         run_dir = create_run_dir(config.output_dir, scene.name, config.method)
         save_run_config(run_dir, config)
         say(f"run folder: {run_dir}")
-    warning = truncation_warning(scene)
-    if warning is not None:
-        say(f"[yellow]warning:[/yellow] {warning}")
+    fitting = fitting_scene(scene, say=say)
     say(f"device: {device}; torch threads: {torch.get_num_threads()}")
-    return config.setup(scene=scene, run_dir=run_dir, device=device, started=started).run()
+    return config.setup(scene=scene, fitting=fitting, run_dir=run_dir, device=device, started=started).run()

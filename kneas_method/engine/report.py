@@ -127,6 +127,17 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
         say(f"  {line}", markup=False)
 
 
+def with_fitting_box(metrics: dict, fitting) -> dict:
+    """``metrics`` with the slices the fitted box has beyond the scene's at each end
+    (``fitting_box_extra_slices``, ``data.truncation.FittingBox``) and a note, where it has any."""
+    if fitting is not None and fitting.slices:
+        metrics["fitting_box_extra_slices"] = int(fitting.slices)
+        metrics["notes"] = list(metrics.get("notes") or []) + [
+            f"the object goes on beyond the box along the axis: the views were fitted on a box {fitting.slices} slices longer at "
+            "each end and the volume kept on the scene's box"]
+    return metrics
+
+
 def finish(run_dir: Path, metrics: dict) -> int:
     """Write ``metrics.json`` and print the summary block; returns 0."""
     write_json(Path(run_dir) / "metrics.json", metrics)
