@@ -17,7 +17,8 @@ its result is), so one 40-iteration run gives the best count from 1 to 40 (``tra
 ``best`` in the JSON). ``--dice`` adds the per-material Dice and
 Chamfer of ``kneas-eval`` (the volume thresholded at the GMM bounds fitted on it). ``--algorithms`` with ``--iterations`` is a shorthand for runs
 with default settings. Every run reconstructs from the scene's training views
-on its own voxel grid; PSNR/SSIM are SPEC §5's primary 3D figures
+on the box ``kneas-train`` fits them on (``data.truncation.fitting_scene``: the scene's own,
+or longer along the axis where the object goes on beyond it) and is scored on the scene's grid; PSNR/SSIM are SPEC §5's primary 3D figures
 (``volume_metrics``: data units, peak 1, no fitting). The wall time covers the
 whole call (weights included) at ``--threads`` torch threads. The machine
 (CPU count, threads, load average before and after each run) is recorded,
@@ -78,9 +79,12 @@ def per_material_chamfer(metrics: dict) -> dict:
 
 def main(argv=None) -> int:
     sys.path.insert(0, str(HERE))
+    import numpy as np
     from heldout import scene_from_spec
     from kneas_method.classical.options import ALGORITHMS, ReconstructionOptions
     from kneas_method.classical.reconstruct import reconstruct
+    from kneas_method.console import say
+    from kneas_method.data.truncation import fitting_scene
     from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
     from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.presets import TABLE
@@ -118,6 +122,7 @@ def main(argv=None) -> int:
     print("-" * len(header))
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         scene = scene_from_spec(spec)
+        box = fitting_scene(scene, say=say)
         if args.trace and scene.image is None:
             raise SystemExit(f"error: --trace scores each iteration against the ground truth, and scene {spec!r} has none; "
                              "drop --trace for this scene")
@@ -131,13 +136,13 @@ def main(argv=None) -> int:
             trace = []
 
             def score(i, x, name=name):
-                v = (x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy()
+                v = box.crop((x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy())
                 trace.append({"iteration": i, "psnr3d": round(psnr3d(v, scene.image), 4),
                               "ssim3d": round(ssim3d(v, scene.image), 4)})
 
-            rec = reconstruct(name, scene, options, device=args.device,
+            rec = reconstruct(name, box.scene, options, device=args.device,
                               progress=lambda i, n, r: residuals.append(r), iterates=score if args.trace else None)
-            vol, seconds = rec.volume, rec.seconds
+            vol, seconds = np.ascontiguousarray(box.crop(np.asarray(rec.volume))), rec.seconds
             load1 = os.getloadavg()[0]
             m = volume_metrics(vol, scene.image) if scene.image is not None else {}
             row = {
