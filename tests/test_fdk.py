@@ -8,7 +8,7 @@ import torch
 
 from kneas_method.data.scene import Scene, Views
 from kneas_method.errors import ConfigError, KneasError
-from kneas_method.classical.fdk import angular_widths, fdk_reconstruct, ramp_filter, redundancy_weights
+from kneas_method.classical.fdk import angular_widths, column_presence, fdk_reconstruct, ramp_filter, redundancy_weights
 from kneas_method.evaluation.metrics import psnr3d
 from kneas_method.geometry import Geometry
 
@@ -162,3 +162,35 @@ def test_detector_and_volume_offsets():
                          nVoxel=(32, 28, 24), dVoxel=(4.0, 4.0, 4.0), offDetector=(12.0, -9.0), offOrigin=(6.0, -4.0, 3.0))
     angles = np.linspace(0, 2 * math.pi, 60, endpoint=False)
     check_ball(g, fdk_reconstruct(g, angles, ball_projections(g, angles)), tol=0.03)
+
+
+def test_column_presence_shares_the_lines_seen_on_both_sides_of_the_centre():
+    lo, hi = -0.03, 0.17
+    g = np.linspace(lo, -lo, 41)
+    assert np.allclose(column_presence(g, (lo, hi)) + column_presence(-g, (lo, hi)), 1.0)  # Wang's weights
+    assert column_presence(np.array([lo - 1e-3, hi + 1e-3]), (lo, hi)).tolist() == [0.0, 0.0]  # off the detector
+    assert column_presence(np.array([0.1]), (0.02, 0.17)).tolist() == [1.0]  # not crossing the centre: no taper
+    angles = np.linspace(0, 2 * math.pi, 36, endpoint=False)
+    w = redundancy_weights(angles, np.array([-0.02, 0.0, 0.02, 0.05, 0.16]), hi, fan=(lo, hi))
+    assert np.allclose(w[:, 1], 0.5) and np.allclose(w[:, 0] + w[:, 2], 1.0)  # seen from both sides
+    assert np.allclose(w[:, 3:], 1.0)  # its conjugate falls off the detector: counts once
+
+
+@pytest.mark.parametrize("columns,past_centre", [(100, 20), (90, 10)])
+def test_an_offset_half_fan_detector_reconstructs_as_a_centred_one(columns, past_centre):
+    from dataclasses import replace
+
+    from kneas_method.classical.projector import forward
+
+    g = Geometry.from_mm(mode="cone", DSD=1200.0, DSO=750.0, nDetector=(160, 24), dDetector=(2.0, 2.0), nVoxel=(64, 64, 8),
+                         dVoxel=(2.0, 2.0, 2.0))
+    x = np.arange(64) - 31.5
+    r = np.hypot(*np.meshgrid(x, x, indexing="ij"))
+    vol = np.repeat(np.where(r < 28, 0.5, 0.0)[..., None], 8, 2).astype(np.float32)
+    angles = np.linspace(0, 2 * math.pi, 120, endpoint=False)
+    du = g.d_detector[0]
+    half = replace(g, n_detector=(columns, 24), off_detector=((columns / 2 - past_centre) * du, 0.0))  # one side and a little more
+    rec = fdk_reconstruct(half, angles, forward(vol, half, angles))[:, :, 4]
+    for r0 in range(0, 24, 4):  # every ring at the right level, inside the part seen from both sides and beyond it
+        ring = (r >= r0) & (r < r0 + 4)
+        assert abs(rec[ring].mean() / 0.5 - 1.0) < 0.01, (r0, rec[ring].mean())

@@ -24,6 +24,12 @@ Algorithm (Kak & Slaney ch. 3; Feldkamp et al. 1984), in model units:
    measured line counts once and the scale of the result stays right; lines
    never measured cannot be recovered and give the usual limited-angle
    artefacts off-centre. Parallel beam: conjugate ``(β + π, −u)``, i.e. ``γ = 0``.
+   An offset cone-beam detector (``offU`` not 0: a half-fan scan) sees a conjugate only where
+   ``−γ`` is on it; each occurrence also counts as :func:`column_presence` says, a ``sin²`` taper
+   from the detector's shorter edge across the part seen on both sides of the centre, so that
+   the weights fall smoothly to 0 at that edge before the ramp filter (Wang's weighting); the
+   weighted rows are padded with zeros to a centred detector before filtering, since the ramp
+   filter spreads them beyond the shorter edge, where the backprojection reads them.
 3. **Ramp filter** along detector rows ``u``, using the discrete spatial ramp
    kernel (``h(0) = 1/(4τ²)``, ``h(n odd) = −1/(π² n² τ²)``, ``τ`` the pixel
    pitch on the virtual detector, ``dU·DSO/DSD``), zero-padded to at least
@@ -52,7 +58,7 @@ import torch.nn.functional as F
 from ..errors import ConfigError, KneasError
 from ..geometry import Geometry
 
-__all__ = ["fdk_reconstruct", "ramp_filter", "redundancy_weights", "angular_widths", "FILTERS"]
+__all__ = ["fdk_reconstruct", "ramp_filter", "redundancy_weights", "column_presence", "angular_widths", "FILTERS"]
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hann")
 
@@ -124,8 +130,25 @@ def angular_widths(angles: np.ndarray) -> tuple[np.ndarray, float, float]:
     return out, float(start), length
 
 
+def column_presence(gammas, fan: tuple[float, float]) -> np.ndarray:
+    """How much a ray at fan angle ``gammas`` [...] counts on a detector spanning the fan angles
+    ``fan = (lo, hi)`` (rad, its edges): 0 off the detector; on an offset detector, whose shorter
+    side ends at ``lo < 0 < hi``, a ``sin²`` taper over ``2 min(-lo, hi)`` from each edge, so that a
+    line seen on both sides of the centre (``|γ| < min(-lo, hi)``) is shared smoothly between its
+    two rays (Wang's weighting) and one seen once counts once; no taper where the detector does not
+    cross the centre. A symmetric detector gives every ray and its conjugate the same value."""
+    g = np.asarray(gammas, dtype=np.float64)
+    lo, hi = fan
+    inside = ((g >= lo) & (g <= hi)).astype(np.float64)
+    if not lo < 0.0 < hi:
+        return inside
+    width = 2.0 * min(-lo, hi)
+    t_lo, t_hi = np.clip((g - lo) / width, 0.0, 1.0), np.clip((hi - g) / width, 0.0, 1.0)
+    return inside * np.sin(0.5 * math.pi * t_lo) ** 2 * np.sin(0.5 * math.pi * t_hi) ** 2
+
+
 def redundancy_weights(angles: np.ndarray, gammas: np.ndarray, gamma_max: float,
-                       arc: Optional[tuple[float, float]] = None) -> np.ndarray:
+                       arc: Optional[tuple[float, float]] = None, fan: Optional[tuple[float, float]] = None) -> np.ndarray:
     """Normalised redundancy weights ``w [N, G]`` (see module docstring, step 2).
 
     Args:
@@ -134,6 +157,10 @@ def redundancy_weights(angles: np.ndarray, gammas: np.ndarray, gamma_max: float,
         gamma_max: largest fan half-angle (rad), sets the taper length.
         arc: ``(start, length)`` of the scanned arc (rad); default from
             :func:`angular_widths` of ``angles``.
+        fan: ``(lo, hi)``, the fan angles of the detector's edges where it is offset (not symmetric
+            about the central ray): a conjugate ray counts as :func:`column_presence` says, so a
+            line whose conjugate falls off the detector keeps weight 1. None: every conjugate is
+            on the detector (a centred one).
     """
     a = np.asarray(angles, dtype=np.float64).reshape(-1, 1)
     g = np.asarray(gammas, dtype=np.float64).reshape(1, -1)
@@ -160,13 +187,17 @@ def redundancy_weights(angles: np.ndarray, gammas: np.ndarray, gamma_max: float,
     own = c(a + 0 * g)
     total = np.zeros_like(own)
     n_wrap = int(math.ceil(arc / two_pi)) + 1
-    for base in (a + 0 * g, a + math.pi - 2 * g):
+    presence = (None, None) if fan is None else (column_presence(g, fan), column_presence(-g, fan))
+    for base, e in zip((a + 0 * g, a + math.pi - 2 * g), presence):
         r0 = np.mod(base - start, two_pi)
         for m in range(n_wrap):
             r = r0 + m * two_pi
-            total += np.where(r < arc, c(start + r), 0.0) if taper > 0 else (r < arc).astype(np.float64)
+            counted = np.where(r < arc, c(start + r), 0.0) if taper > 0 else (r < arc).astype(np.float64)
+            total += counted if e is None else counted * e
     if taper == 0.0:
         own = np.ones_like(own)
+    if fan is not None:
+        own = own * presence[0]
     return np.where(total > 0, own / np.maximum(total, 1e-30), 1.0)
 
 
@@ -242,16 +273,25 @@ def fdk_reconstruct(
     if cone:
         proj = proj * (dsd / torch.sqrt(dsd**2 + u**2 + v**2)).to(proj.dtype)
         gam = np.arctan(u[0].cpu().numpy() / dsd)
-        gmax = float(max(abs(np.arctan((-nu / 2 * du + ou) / dsd)), abs(np.arctan((nu / 2 * du + ou) / dsd))))
+        fan = (float(np.arctan((-nu / 2 * du + ou) / dsd)), float(np.arctan((nu / 2 * du + ou) / dsd)))
+        gmax = max(abs(fan[0]), abs(fan[1]))
+        if abs(fan[0] + fan[1]) <= 1e-9 * (fan[1] - fan[0]):
+            fan = None  # centred: every conjugate ray is on the detector
     else:
-        gam, gmax = np.zeros(1), 0.0
+        gam, gmax, fan = np.zeros(1), 0.0, None
     widths, _, _ = angular_widths(ang)
     if redundancy:
-        w = redundancy_weights(ang, gam, gmax)  # [N, nU] or [N, 1]
+        w = redundancy_weights(ang, gam, gmax, fan=fan)  # [N, nU] or [N, 1]
     else:
         w = np.full((len(ang), 1), 0.5)
     w = torch.as_tensor(w * widths[:, None], dtype=proj.dtype, device=dev)
     proj = proj * w[:, None, :]
+
+    if fan is not None:  # an offset detector: rows padded with zeros to a centred one, so that the filtered rows reach
+        # the mirror of the shorter side, as a centred detector's rows whose weights are 0 there would
+        extra = int(math.ceil(2.0 * abs(ou) / du - 1e-6))
+        proj = F.pad(proj, (extra, 0) if ou > 0 else (0, extra))
+        ou, nu = ou - math.copysign(extra * du / 2, ou), nu + extra
 
     # 3. ramp filter on the virtual detector at the isocentre
     pitch = du * dso / dsd if cone else du
