@@ -33,6 +33,10 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
 * ``knee-long``: the knee with the leg going on 130 mm beyond the box at both ends (added in the 68th
   stop), as a scanner sees a leg: every view's top and bottom rows cross tissue outside the
   reconstructed box (a scan truncated along the axis).
+* ``knee-halffan``: the knee on an offset detector (added in the 69th stop), as large-field cone-beam
+  scanners extend their field of view: 112 of the 192 columns, shifted so that they see 16 columns
+  past the central ray on one side and the whole object on the other; each view sees a little more
+  than half the object, and the 360° orbit gives every point of it views from both sides.
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object
   (not piecewise constant: TV's weak case), projected with the Joseph projector, with noise.
 
@@ -52,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy", "head-noisy",
-          "knee", "knee-physical", "knee-long")
+          "knee", "knee-physical", "knee-long", "knee-halffan")
 
 
 def head_phantom():
@@ -78,6 +82,13 @@ def head_phantom():
 # knee-physical: the knee's levels in a scanner's units, muscle at 20.25 /m (water at about 70 keV,
 # 0.02 /mm), where the built-in scenes' NAF-normalised volumes lie within [0, 1] /m
 KNEE_PHYSICAL_SCALE = 75.0
+
+
+def _knee_scan():
+    from kneas_method.data.simulate import SimulationConfig
+
+    return SimulationConfig(n_voxel=(112, 112, 144), voxel_mm=(1.25, 1.25, 1.5), dso_mm=750.0, dsd_mm=1200.0,
+                            n_detector=192, n_train=45, n_val=10, total_angle_deg=360.0)
 
 
 def knee_phantom(scale: float = 1.0, extend_mm: float = 0.0):
@@ -133,6 +144,26 @@ def scene_from_spec(spec: str):
     return resolve_scene(spec)
 
 
+def _offset_detector_scan(phantom, cfg, name: str, columns: int, past_centre: int):
+    """``phantom`` scanned as ``cfg`` says, but on ``columns`` of the detector's columns, shifted so that
+    they reach ``past_centre`` columns past the central ray (an offset, half-fan detector)."""
+    from kneas_method.data.scene import Scene, Views
+    from kneas_method.data.simulate import _meta, make_angles, make_geometry
+
+    full = make_geometry(cfg)
+    nv = full.n_detector[1]
+    du = full.d_detector[0]
+    offset = (columns / 2 - past_centre) * du  # the kept columns' centre, from the central ray
+    geometry = dataclasses.replace(full, n_detector=(columns, nv), off_detector=(offset, full.off_detector[1]))
+    train_a, val_a = make_angles(cfg)
+    train = Views(train_a, np.asarray(phantom.project(geometry, train_a), dtype=np.float32))
+    val = Views(val_a, np.asarray(phantom.project(geometry, val_a), dtype=np.float32))
+    return Scene(name, geometry, train, val, image=np.ascontiguousarray(phantom.volume(geometry), dtype=np.float32),
+                 labels=np.ascontiguousarray(phantom.labels(geometry), dtype=np.uint8), materials=tuple(phantom.materials),
+                 membership=lambda pts: phantom.label_at(geometry.model_to_mm(np.asarray(pts, dtype=np.float64))),
+                 meta=_meta(cfg, phantom=str(phantom.name)), source=f"heldout:{name}")
+
+
 def heldout_scene(name: str):
     """The held-out scene ``name`` (one of :data:`SCENES`), simulated in memory."""
     from kneas_method.data.simulate import SimulationConfig, simulate_from_volume, simulate_phantom
@@ -154,9 +185,10 @@ def heldout_scene(name: str):
         scene = simulate_phantom(name.split("-")[0], SimulationConfig(n_train=50, n_val=10, noise=True))
         scene.name = name
         return scene
+    if name == "knee-halffan":
+        return _offset_detector_scan(knee_phantom(), _knee_scan(), name, columns=112, past_centre=16)
     if name in ("knee", "knee-physical", "knee-long"):
-        cfg = SimulationConfig(n_voxel=(112, 112, 144), voxel_mm=(1.25, 1.25, 1.5), dso_mm=750.0, dsd_mm=1200.0,
-                               n_detector=192, n_train=45, n_val=10, total_angle_deg=360.0)
+        cfg = _knee_scan()
         phantom = knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0, 130.0 if name == "knee-long" else 0.0)
         scene = simulate_phantom(phantom, cfg)
         scene.name = name
