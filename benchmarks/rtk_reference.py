@@ -14,6 +14,7 @@ geometry would give a blurred or displaced volume and poor figures.
 Methods (RTK's defaults otherwise, as its command-line tools):
 
 * ``fdk``: ``rtk.FDKConeBeamReconstructionFilter`` (Ram-Lak), after
+  ``rtk.DisplacedDetectorImageFilter`` (an offset, half-fan detector's weights, as ``rtkfdk``) and
   ``rtk.ParkerShortScanImageFilter`` when the scan is shorter than 360°
   (the NAF scenes cover 180°, less than a short scan: limited-angle artefacts);
 * ``sart``: ``rtk.SARTConeBeamReconstructionFilter``, 5 iterations, λ 0.5,
@@ -80,10 +81,16 @@ def run_fdk(itk, rtk, projections, geometry, grid, short_scan: bool):
     src = volume_source(itk, rtk, grid)
     t0 = time.perf_counter()
     proj = projections
+    displaced = rtk.DisplacedDetectorImageFilter[F3].New()  # as rtkfdk: a half-fan detector's weights (none on a centred one)
+    displaced.InPlaceOff()
+    displaced.SetInput(proj)
+    displaced.SetGeometry(geometry)
+    displaced.Update()
+    proj = displaced.GetOutput()
     if short_scan:
         parker = rtk.ParkerShortScanImageFilter[F3].New()
         parker.InPlaceOff()  # in place it would take over the shared projections' buffer
-        parker.SetInput(projections)
+        parker.SetInput(proj)
         parker.SetGeometry(geometry)
         parker.Update()
         proj = parker.GetOutput()
@@ -203,7 +210,8 @@ def main(argv=None) -> int:
     for method in [m.strip() for m in args.methods.split(",") if m.strip()]:
         if method == "fdk":
             image, wall = run_fdk(itk, rtk, projections, geometry, grid, short_scan)
-            settings = "FDKConeBeamReconstructionFilter, Ram-Lak" + (" after ParkerShortScanImageFilter" if short_scan else "")
+            settings = "DisplacedDetectorImageFilter, " + ("ParkerShortScanImageFilter, " if short_scan else "") + \
+                "FDKConeBeamReconstructionFilter, Ram-Lak"
         elif method == "sart":
             image, wall = run_sart(itk, rtk, projections, geometry, grid, args.sart_iterations, args.sart_lambda, args.sart_bp)
             settings = (f"SARTConeBeamReconstructionFilter, {args.sart_iterations} iterations, lambda {args.sart_lambda}, "
