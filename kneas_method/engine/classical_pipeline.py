@@ -1,9 +1,9 @@
 """The pipeline of a classical run (``kneas-train fdk ...``): reconstruct -> evaluate -> report.
 
 The volume is reconstructed on the box the views are fitted on (``data.truncation.fitting_scene``)
-and kept on the scene's box. Writes ``volume.npy`` (data units; where the box was made longer, the
-whole reconstruction too, ``volume_fitted_box.npy``, from which the held-out views are projected) to the run folder; ``kneas-eval`` and ``kneas-export``
-read it back.
+and kept on the scene's box. Writes ``volume.npy`` (data units) to the run folder, and where the box
+was made longer the whole reconstruction too (``volume_fitted_box.npy``, from which the held-out
+views are projected); ``kneas-eval`` and ``kneas-export`` read them back.
 """
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ from ..atomic import atomic_write
 from ..classical.reconstruct import reconstruct
 from ..console import console, say
 from ..data.truncation import FittingBox
-
-# the volume on the longer box the views were fitted on (``data.truncation.FittingBox``), where there is one
-FITTED_VOLUME = "volume_fitted_box.npy"
 from . import report
 from .evaluate import evaluate_volume_stage
 from .figures import run_figures
 from .progress import stage_progress
+
+# the volume on the longer box the views were fitted on (``data.truncation.FittingBox``), where there is one
+FITTED_VOLUME = "volume_fitted_box.npy"
 
 
 class ClassicalPipeline:
