@@ -10,7 +10,7 @@ import torch
 
 from kneas_method.data.naf import load_naf, save_naf
 from kneas_method.data.scene import Views
-from kneas_method.data.truncation import ROW_OBJECT_SHARE, axial_truncation, truncation_warning
+from kneas_method.data.truncation import ROW_OBJECT_SHARE, axial_truncation, lateral_truncation, truncation_warning
 
 from conftest import run, run_dir_of, simulated_foot
 
@@ -172,3 +172,25 @@ def test_runs_on_a_truncated_scan_fit_the_longer_box_and_score_the_scenes(tmp_pa
     assert model.occupancy_box[1, 2].item() > scene.geometry.volume_half_size[2] * 1.1
     again = _eval(neural, capsys)
     assert again["psnr2d"] == pytest.approx(metrics["psnr2d"], abs=1e-4) and again["psnr3d"] == pytest.approx(metrics["psnr3d"], abs=1e-4)
+
+
+def test_lateral_truncation_counts_the_outer_columns_only():
+    p = np.zeros((4, 10, 12), dtype=np.float32)
+    p[:, :, 2:10] = 0.3  # inside the field of view
+    assert lateral_truncation(p, 0.0) == 0.0
+    p[:3, :, 0] = 0.05  # three views' first column crosses the object
+    assert lateral_truncation(p, 0.0) == 0.75
+    assert lateral_truncation(p, 0.0, off_u=1.0) == 0.0  # an offset detector's shorter side crosses it by design
+    assert lateral_truncation(p, 0.0, off_u=-1.0) == 0.75  # its outer side is the first column then
+    assert lateral_truncation(p, 0.1) == 0.0  # below the air threshold: noise in air
+
+
+def test_an_object_wider_than_the_field_of_view_is_named_in_a_warning(tmp_path):
+    path = simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4)
+    scene = load_naf(path)
+    lines = []
+    assert fitting_scene(scene, say=lines.append).slices == 0 and lines == []
+    wide = scene.train.projections.copy()
+    wide[:, :, -1] += 0.02  # tissue at the last column in every view
+    box = fitting_scene(dataclasses.replace(scene, train=Views(scene.train.angles, wide)), say=lines.append)
+    assert box.slices == 0 and len(lines) == 1 and "wider than the field of view" in lines[0] and "4 of 4" in lines[0]

@@ -53,6 +53,33 @@ def truncation_warning(scene, air_threshold: float | None = None) -> str | None:
             "beyond the reconstructed box along the rotation axis")
 
 
+def lateral_truncation(projections, air_threshold: float, off_u: float = 0.0) -> float:
+    """``[N, nV, nU]`` line integrals -> the share of views whose outer detector column sees the object
+    (``ROW_OBJECT_SHARE`` of its pixels above ``air_threshold``): both end columns of a centred
+    detector (``off_u`` 0), the one farther from the central ray of an offset (half-fan) one, whose
+    shorter side crosses the object by design."""
+    p = np.asarray(projections)
+    first = (p[:, :, 0] > air_threshold).mean(axis=1) >= ROW_OBJECT_SHARE
+    last = (p[:, :, -1] > air_threshold).mean(axis=1) >= ROW_OBJECT_SHARE
+    outer = last if off_u > 0 else first if off_u < 0 else first | last
+    return float(np.mean(outer))
+
+
+def lateral_truncation_warning(scene, air_threshold: float | None = None) -> str | None:
+    """One line for the user when ``scene``'s object is wider than the detector's field of view
+    (:func:`lateral_truncation` in ``TRUNCATED_VIEW_SHARE`` of the views), else None."""
+    from ..datamanagers.ct import noise_air_threshold
+
+    p = np.asarray(scene.train.projections)
+    threshold = noise_air_threshold(p)[0] if air_threshold is None else air_threshold
+    share = lateral_truncation(p, threshold, scene.geometry.off_detector[0])
+    if share < TRUNCATED_VIEW_SHARE:
+        return None
+    return (f"the object reaches the detector's outer column in {round(share * len(p))} of {len(p)} training views: it is wider "
+            "than the field of view, so every view misses part of it; every method biases the volume near the field of view's "
+            "edge and cannot reconstruct what lies outside it (kneas does nothing about it yet)")
+
+
 def axial_margin(geometry, reach: float = 1.0) -> int:
     """Slices to add at each end of ``geometry``'s box so that it holds every ray's stretch inside
     the box's side walls: the cylinder about the axis through the box's farthest corner in x, y.
@@ -100,7 +127,12 @@ def extend_axially(scene, slices: int):
 def fitting_scene(scene, air_threshold: float | None = None, say=None) -> FittingBox:
     """The box a run fits ``scene``'s views on: the scene's own, or where its object goes on beyond
     the box along the axis (:func:`truncation_warning`), one :func:`axial_margin` longer at each end.
-    ``say`` gets the one-line warning and what is done about it."""
+    ``say`` gets the one-line warning and what is done about it, and a line where the object is
+    wider than the detector's field of view (:func:`lateral_truncation_warning`; nothing is done)."""
+    if say is not None:
+        wide = lateral_truncation_warning(scene, air_threshold)
+        if wide is not None:
+            say(f"[yellow]warning:[/yellow] {wide}")
     warning = truncation_warning(scene, air_threshold)
     if warning is None:
         return FittingBox(scene)
