@@ -37,6 +37,8 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
   scanners extend their field of view: 112 of the 192 columns, shifted so that they see 16 columns
   past the central ray on one side and the whole object on the other; each view sees a little more
   than half the object, and the 360° orbit gives every point of it views from both sides.
+* ``knee-narrow``: the knee on the middle 80 of the 192 columns (added in the 69th stop): a field of
+  view of 54 mm radius, narrower than the leg (62 mm), so most views miss part of it (truncated data).
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object
   (not piecewise constant: TV's weak case), projected with the Joseph projector, with noise.
 
@@ -56,7 +58,7 @@ from pathlib import Path
 import numpy as np
 
 SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy", "head-noisy",
-          "knee", "knee-physical", "knee-long", "knee-halffan")
+          "knee", "knee-physical", "knee-long", "knee-halffan", "knee-narrow")
 
 
 def head_phantom():
@@ -187,6 +189,8 @@ def heldout_scene(name: str):
         return scene
     if name == "knee-halffan":
         return _offset_detector_scan(knee_phantom(), _knee_scan(), name, columns=112, past_centre=16)
+    if name == "knee-narrow":  # centred, too narrow for the leg
+        return _offset_detector_scan(knee_phantom(), _knee_scan(), name, columns=80, past_centre=40)
     if name in ("knee", "knee-physical", "knee-long"):
         cfg = _knee_scan()
         phantom = knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0, 130.0 if name == "knee-long" else 0.0)
