@@ -129,6 +129,10 @@ def fitting_scene(scene, air_threshold: float | None = None, say=None) -> Fittin
     the box along the axis (:func:`truncation_warning`), one :func:`axial_margin` longer at each end.
     ``say`` gets the one-line warning and what is done about it, and a line where the object is
     wider than the detector's field of view (:func:`lateral_truncation_warning`; nothing is done)."""
+    if air_threshold is None:
+        from ..datamanagers.ct import noise_air_threshold
+
+        air_threshold = noise_air_threshold(np.asarray(scene.train.projections))[0]
     if say is not None:
         wide = lateral_truncation_warning(scene, air_threshold)
         if wide is not None:
