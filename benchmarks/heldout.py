@@ -33,6 +33,8 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
 * ``knee-long``: the knee with the leg going on 130 mm beyond the box at both ends (added in the 68th
   stop), as a scanner sees a leg: every view's top and bottom rows cross tissue outside the
   reconstructed box (a scan truncated along the axis).
+* ``knee-long-noisy``: ``knee-long`` with the noisy scans' detector noise (added in the 69th stop, after
+  the longer box was built on ``knee-long``).
 * ``knee-halffan``: the knee on an offset detector (added in the 69th stop), as large-field cone-beam
   scanners extend their field of view: 112 of the 192 columns, shifted so that they see 16 columns
   past the central ray on one side and the whole object on the other; each view sees a little more
@@ -58,7 +60,7 @@ from pathlib import Path
 import numpy as np
 
 SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy", "head-noisy",
-          "knee", "knee-physical", "knee-long", "knee-halffan", "knee-narrow")
+          "knee", "knee-physical", "knee-long", "knee-long-noisy", "knee-halffan", "knee-narrow")
 
 
 def head_phantom():
@@ -191,9 +193,9 @@ def heldout_scene(name: str):
         return _offset_detector_scan(knee_phantom(), _knee_scan(), name, columns=112, past_centre=16)
     if name == "knee-narrow":  # centred, too narrow for the leg
         return _offset_detector_scan(knee_phantom(), _knee_scan(), name, columns=80, past_centre=40)
-    if name in ("knee", "knee-physical", "knee-long"):
-        cfg = _knee_scan()
-        phantom = knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0, 130.0 if name == "knee-long" else 0.0)
+    if name in ("knee", "knee-physical", "knee-long", "knee-long-noisy"):
+        cfg = dataclasses.replace(_knee_scan(), noise=name.endswith("-noisy"))
+        phantom = knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0, 130.0 if name.startswith("knee-long") else 0.0)
         scene = simulate_phantom(phantom, cfg)
         scene.name = name
         return scene
