@@ -145,6 +145,7 @@ def fitting_scene(scene, air_threshold: float | None = None, say=None) -> Fittin
         mm = slices * scene.geometry.d_voxel[2] * scene.geometry.mm_per_unit
         done = (f"the views are fitted on a box {slices} slices ({mm:.0f} mm) longer at each end, where the rays reach, and the "
                 "volume is kept on the scene's box; the slices nearest its ends are the least certain" if slices
-                else "the box already fills the reconstruction's domain along the axis: the slices nearest its ends hold what lies beyond")
+                else "the box is not made longer (the rays reach no farther along the axis, or it fills the fields' domain): the "
+                "slices nearest its ends hold what lies beyond")
         say(f"[yellow]warning:[/yellow] {warning}; {done}")
     return FittingBox(extend_axially(scene, slices) if slices else scene, slices)
