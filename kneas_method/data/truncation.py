@@ -30,14 +30,18 @@ ROW_OBJECT_SHARE = 0.1
 TRUNCATED_VIEW_SHARE = 0.5
 
 
+def _sees_object(lines, air_threshold: float) -> np.ndarray:
+    """``[N, L]``, one detector row or column per view -> ``[N]`` bool: it sees the object
+    (``ROW_OBJECT_SHARE`` of its pixels above ``air_threshold``)."""
+    return (lines > air_threshold).mean(axis=1) >= ROW_OBJECT_SHARE
+
+
 def axial_truncation(projections, air_threshold: float) -> float:
     """``[N, nV, nU]`` line integrals (rows along the rotation axis) -> the share of views whose
     first or last detector row sees the object (``ROW_OBJECT_SHARE`` of its pixels above
     ``air_threshold``)."""
     p = np.asarray(projections)
-    first = (p[:, 0, :] > air_threshold).mean(axis=1)
-    last = (p[:, -1, :] > air_threshold).mean(axis=1)
-    return float(np.mean((first >= ROW_OBJECT_SHARE) | (last >= ROW_OBJECT_SHARE)))
+    return float(np.mean(_sees_object(p[:, 0, :], air_threshold) | _sees_object(p[:, -1, :], air_threshold)))
 
 
 def truncation_warning(scene, air_threshold: float | None = None) -> str | None:
@@ -59,8 +63,7 @@ def lateral_truncation(projections, air_threshold: float, off_u: float = 0.0) ->
     detector (``off_u`` 0), the one farther from the central ray of an offset (half-fan) one, whose
     shorter side crosses the object by design."""
     p = np.asarray(projections)
-    first = (p[:, :, 0] > air_threshold).mean(axis=1) >= ROW_OBJECT_SHARE
-    last = (p[:, :, -1] > air_threshold).mean(axis=1) >= ROW_OBJECT_SHARE
+    first, last = _sees_object(p[:, :, 0], air_threshold), _sees_object(p[:, :, -1], air_threshold)
     outer = last if off_u > 0 else first if off_u < 0 else first | last
     return float(np.mean(outer))
 
