@@ -80,6 +80,19 @@ def test_psnr3d_known_value_and_ls_recovers_scale(rng):
     assert res["psnr3d"] == pytest.approx(M.psnr3d(scaled, gt))
 
 
+def test_a_scan_in_a_scanners_units_is_also_scored_against_the_truths_peak(rng):
+    gt = rng.uniform(0, 1, size=(16, 16, 16))
+    gt[0, 0, 0] = 1.0
+    pred = gt + 0.01 * rng.standard_normal(gt.shape)
+    normalised = M.volume_metrics(pred, gt)
+    assert "psnr3d_truth_peak" not in normalised and "ssim3d_truth_range" not in normalised  # NAF's [0, 1]: peak 1 is the truth's
+    physical = M.volume_metrics(75 * pred, 75 * gt)  # the same volumes in /m as a scanner gives them
+    assert physical["psnr3d"] == pytest.approx(normalised["psnr3d"] - 20 * math.log10(75), abs=1e-6)  # peak 1 is blind to the scale
+    assert physical["psnr3d_truth_peak"] == pytest.approx(normalised["psnr3d"], abs=1e-6)
+    assert physical["ssim3d_truth_range"] == pytest.approx(M.ssim3d(pred, gt, data_range=1.0 - gt.min()), abs=1e-6)
+    assert "psnr3d_truth_peak" not in M.volume_metrics(75 * pred, 75 * gt, data_range=100.0)
+
+
 def test_nan_volume_rejected():
     v = np.zeros((8, 8, 8))
     v[1, 1, 1] = np.nan

@@ -9,7 +9,8 @@ Writes ``metrics.json`` and figures to ``-o DIR`` (default ``RUN_DIR/eval-<times
 * 2D: PSNR/SSIM per held-out view and their means (intensity domain);
 * 3D: PSNR/SSIM at the voxel centres with the exact unit conversion
   (``psnr3d``, ``ssim3d``) and the least-squares-rescaled variant
-  (``psnr3d_ls``, ``ssim3d_ls``, ``ls_scale``);
+  (``psnr3d_ls``, ``ssim3d_ls``, ``ls_scale``); where the truth reaches above 1 (a scanner's
+  units), also against the truth's maximum and range (``psnr3d_truth_peak``, ``ssim3d_truth_range``);
 * built-in scenes: per ground-truth material Dice, Chamfer distance (mm) and F-score at
   one voxel, with the material matching. SDF methods: labels and surfaces from the
   fields; methods without (classical, NAF): the volume thresholded at the automatic GMM
@@ -69,7 +70,8 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
 def _print(metrics: dict) -> None:
     keys = [("psnr2d", "2D PSNR (dB, mean over held-out views)"), ("ssim2d", "2D SSIM"),
             ("psnr3d", "3D PSNR (dB, exact units)"), ("ssim3d", "3D SSIM (exact units)"),
-            ("psnr3d_ls", "3D PSNR, least-squares scaled"), ("ssim3d_ls", "3D SSIM, least-squares scaled")]
+            ("psnr3d_ls", "3D PSNR, least-squares scaled"), ("ssim3d_ls", "3D SSIM, least-squares scaled"),
+            ("psnr3d_truth_peak", "3D PSNR, peak: the truth's maximum"), ("ssim3d_truth_range", "3D SSIM, the truth's range")]
     for key, label in keys:
         if key in metrics:
             _say(f"  {label:42s} {metrics[key]:.4f}")

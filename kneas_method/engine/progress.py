@@ -151,7 +151,7 @@ def _fmt(value) -> str:
     return str(value)
 
 
-SUMMARY_KEYS = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_ls", "ssim3d_ls", "num_materials", "parameters",
+SUMMARY_KEYS = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_ls", "ssim3d_ls", "psnr3d_truth_peak", "ssim3d_truth_range", "num_materials", "parameters",
                 "steps", "wall_time_s", "preset", "scene_source")
 
 

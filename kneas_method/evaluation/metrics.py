@@ -19,7 +19,9 @@ in [0, 1]). ``psnr3d`` uses peak 1 and no fitting (the primary figure, SPEC §5)
 ``ssim3d`` is a true 3-D SSIM (Gaussian window σ = 1.5) with ``data_range = 1``.
 The ``*_ls`` variants first rescale the prediction by the least-squares factor
 ``⟨p, g⟩ / ⟨p, p⟩`` as the reference code does; they are reported beside, never
-instead of, the plain figures.
+instead of, the plain figures. Where the truth reaches above 1 (a scan in a scanner's
+units), ``psnr3d_truth_peak`` and ``ssim3d_truth_range`` take the truth's maximum and range
+instead, beside the primary figures.
 
 **Identical inputs.** PSNR of an exact match is ``inf`` (``float('inf')``),
 everywhere and consistently, never capped; a mean over views that contains an
@@ -212,7 +214,10 @@ def ssim3d_ls(pred_vol, gt_vol, data_range: float = 1.0) -> float:
 
 def volume_metrics(pred_vol, gt_vol, *, data_range: float = 1.0, ssim: bool = True) -> dict:
     """3D metrics: ``psnr3d``, ``ssim3d`` (primary, exact units) and ``psnr3d_ls``,
-    ``ssim3d_ls``, ``ls_scale`` (least-squares-rescaled variant), ``mse3d``.
+    ``ssim3d_ls``, ``ls_scale`` (least-squares-rescaled variant), ``mse3d``. Where the truth
+    reaches above ``data_range`` (a scan in a scanner's units, not NAF's [0, 1]), also
+    ``psnr3d_truth_peak`` and ``ssim3d_truth_range``: the same volumes with the truth's maximum as
+    the peak and its range as SSIM's (the primary figures' peak 1 says little there).
     ``ssim=False`` skips the (slower) SSIMs. JSON-able floats."""
     p, g = _vol_pair(pred_vol, gt_vol)
     k = ls_scale(p, g)
@@ -222,9 +227,14 @@ def volume_metrics(pred_vol, gt_vol, *, data_range: float = 1.0, ssim: bool = Tr
         "ls_scale": k,
         "mse3d": float(np.mean((p - g) ** 2)),
     }
+    peak = float(np.max(g)) if g.size else 0.0
+    if peak > data_range:
+        out["psnr3d_truth_peak"] = psnr(p, g, peak)
     if ssim:
         out["ssim3d"] = _ssim(p, g, data_range)
         out["ssim3d_ls"] = _ssim(p * k, g, data_range)
+        if peak > data_range:
+            out["ssim3d_truth_range"] = _ssim(p, g, peak - float(np.min(g)))
     return out
 
 
