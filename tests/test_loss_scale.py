@@ -38,6 +38,21 @@ def test_naf_scale_is_its_own_unit_and_a_scanners_is_brought_to_it(foot):
     assert loss_scale(scanner) > 1.0
 
 
+def test_a_scans_unit_is_measured_once_per_projections(foot, monkeypatch):
+    import kneas_method.classical.reconstruct as rec
+
+    calls = []
+    real = rec.reconstruct
+    monkeypatch.setattr(rec, "reconstruct", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
+    scanner = in_units(foot, UNIT)
+    first = loss_scale(scanner)
+    assert loss_scale(scanner) == first and loss_scale(dataclasses.replace(scanner, name="again")) == first and calls == ["fdk"]
+    assert loss_scale(in_units(foot, 2 * UNIT)) == pytest.approx(2 * first, rel=1e-4) and len(calls) == 2  # other projections
+    moved = dataclasses.replace(scanner, geometry=dataclasses.replace(scanner.geometry, off_origin=(0.0, 0.0, 0.01)))
+    loss_scale(moved)
+    assert len(calls) == 3  # same projections, another geometry: measured again
+
+
 def rays(n_obj: int, n_air: int) -> dict:
     """A training batch without projections: ``n_obj`` object rays, then ``n_air`` air rays, through the box."""
     torch.manual_seed(1)
