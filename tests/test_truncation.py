@@ -10,7 +10,9 @@ import torch
 
 from kneas_method.data.naf import load_naf, save_naf
 from kneas_method.data.scene import Views
+from kneas_method.classical.options import ReconstructionOptions
 from kneas_method.data.truncation import ROW_OBJECT_SHARE, axial_truncation, lateral_truncation, truncation_warning
+from kneas_method.engine.classical_volume import WIDE_START_ITERATIONS, classical_volume, start_options
 
 from conftest import run, run_dir_of, simulated_foot
 
@@ -189,8 +191,44 @@ def test_an_object_wider_than_the_field_of_view_is_named_in_a_warning(tmp_path):
     path = simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4)
     scene = load_naf(path)
     lines = []
-    assert fitting_scene(scene, say=lines.append).slices == 0 and lines == []
+    box = fitting_scene(scene, say=lines.append)
+    assert box.slices == 0 and not box.wider_than_view and lines == []
     wide = scene.train.projections.copy()
     wide[:, :, -1] += 0.02  # tissue at the last column in every view
     box = fitting_scene(dataclasses.replace(scene, train=Views(scene.train.angles, wide)), say=lines.append)
     assert box.slices == 0 and len(lines) == 1 and "wider than the field of view" in lines[0] and "4 of 4" in lines[0]
+    assert box.wider_than_view and box.scene.geometry == scene.geometry  # the box is kept
+
+
+def test_a_start_for_an_object_wider_than_the_view_runs_further_unless_a_count_is_given():
+    default = ReconstructionOptions()
+    assert start_options("asd-pocs", default, True).iterations == WIDE_START_ITERATIONS["asd-pocs"] == 40
+    assert start_options("asd-pocs", default, False) is default  # the preset's count (10) elsewhere
+    given = ReconstructionOptions(iterations=7)
+    assert start_options("asd-pocs", given, True) is given  # the user's count wins
+    assert start_options("sart", default, True) is default and start_options("fdk", default, True) is default
+
+
+def test_a_cached_start_with_another_iteration_count_is_computed_again(tmp_path):
+    scene = load_naf(simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4))
+    first = classical_volume("asd-pocs", ReconstructionOptions(iterations=1), scene, tmp_path, "cpu")
+    again = classical_volume("asd-pocs", ReconstructionOptions(iterations=1), scene, tmp_path, "cpu")
+    assert again.settings["iterations"] == 1 and np.array_equal(again.volume, first.volume)  # reused
+    further = classical_volume("asd-pocs", ReconstructionOptions(iterations=3), scene, tmp_path, "cpu")
+    assert further.settings["iterations"] == 3 and not np.array_equal(further.volume, first.volume)
+    assert json.loads((tmp_path / "asd-pocs_volume.json").read_text())["settings"]["iterations"] == 3
+
+
+def test_a_neural_runs_start_is_run_further_where_the_object_is_wider_than_the_view(tmp_path):
+    from kneas_method import registry
+    from kneas_method.data.truncation import FittingBox
+    from kneas_method.engine.neural_pipeline import NeuralPipeline
+
+    scene = load_naf(simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4))
+    config = registry.load("methods", "k-neas").config
+    assert config.reconstruction.iterations is None
+    for wide, count in ((False, 10), (True, 40)):
+        run_dir = tmp_path / f"run-{wide}"
+        run_dir.mkdir()
+        pipeline = NeuralPipeline(config, scene=scene, run_dir=run_dir, device="cpu", fitting=FittingBox(scene, wider_than_view=wide))
+        assert pipeline.classical("asd-pocs").settings["iterations"] == count

@@ -80,8 +80,9 @@ def lateral_truncation_warning(scene, air_threshold: float | None = None) -> str
         return None
     return (f"the object reaches the detector's outer column in {round(share * len(p))} of {len(p)} training views: it is wider "
             "than the field of view, so every view misses part of it; every method biases the volume near the field of view's "
-            "edge and cannot reconstruct what lies outside it; a neural run keeps its classical start's values there, and a "
-            "start run further (--reconstruction.iterations 40) did better on a held-out scan")
+            "edge and cannot reconstruct what lies outside it; a neural run keeps its classical start's values there, so its "
+            "ASD-POCS start is run to 40 iterations instead of 10 (unless --reconstruction.iterations is given); an ASD-POCS run "
+            "can be run further with --reconstruction.iterations 40")
 
 
 def axial_margin(geometry, reach: float = 1.0) -> int:
@@ -109,11 +110,14 @@ def axial_margin(geometry, reach: float = 1.0) -> int:
 
 @dataclass(frozen=True)
 class FittingBox:
-    """The scene whose training views a run fits (``scene``) and the slices its box has more than
-    the scene's own at each end (``slices``; 0: the scene itself)."""
+    """The scene whose training views a run fits (``scene``), the slices its box has more than
+    the scene's own at each end (``slices``; 0: the scene itself), and whether the object is wider
+    than the detector's field of view (``wider_than_view``: nothing about the box changes for it, a
+    neural run's classical start is run further, ``engine.classical_volume.start_options``)."""
 
     scene: object
     slices: int = 0
+    wider_than_view: bool = False  # the object is wider than the detector's field of view (lateral_truncation_warning)
 
     def crop(self, volume):
         """A volume ``[nx, ny, nz + 2 slices]`` on the fitting box -> ``[nx, ny, nz]`` on the scene's box."""
@@ -132,18 +136,18 @@ def fitting_scene(scene, air_threshold: float | None = None, say=None) -> Fittin
     """The box a run fits ``scene``'s views on: the scene's own, or where its object goes on beyond
     the box along the axis (:func:`truncation_warning`), one :func:`axial_margin` longer at each end.
     ``say`` gets the one-line warning and what is done about it, and a line where the object is
-    wider than the detector's field of view (:func:`lateral_truncation_warning`; nothing is done)."""
+    wider than the detector's field of view (:func:`lateral_truncation_warning`; the box is kept,
+    ``wider_than_view`` is set)."""
     if air_threshold is None:
         from ..datamanagers.ct import noise_air_threshold
 
         air_threshold = noise_air_threshold(np.asarray(scene.train.projections))[0]
-    if say is not None:
-        wide = lateral_truncation_warning(scene, air_threshold)
-        if wide is not None:
-            say(f"[yellow]warning:[/yellow] {wide}")
+    wide = lateral_truncation_warning(scene, air_threshold)
+    if wide is not None and say is not None:
+        say(f"[yellow]warning:[/yellow] {wide}")
     warning = truncation_warning(scene, air_threshold)
     if warning is None:
-        return FittingBox(scene)
+        return FittingBox(scene, wider_than_view=wide is not None)
     slices = axial_margin(scene.geometry)
     if say is not None:
         mm = slices * scene.geometry.d_voxel[2] * scene.geometry.mm_per_unit
@@ -152,4 +156,4 @@ def fitting_scene(scene, air_threshold: float | None = None, say=None) -> Fittin
                 else "the box is not made longer (the rays reach no farther along the axis, or it fills the fields' domain): the "
                 "slices nearest its ends hold what lies beyond")
         say(f"[yellow]warning:[/yellow] {warning}; {done}")
-    return FittingBox(extend_axially(scene, slices) if slices else scene, slices)
+    return FittingBox(extend_axially(scene, slices) if slices else scene, slices, wider_than_view=wide is not None)

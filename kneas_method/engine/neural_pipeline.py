@@ -34,7 +34,7 @@ from ..errors import ConfigError
 from ..model import field_has_surfaces
 from . import report
 from .bounds_stage import BoundsResult, estimate_bounds
-from .classical_volume import classical_volume
+from .classical_volume import classical_volume, start_options
 from .correction_stage import correct_stage
 from .evaluate import evaluate_model_stage
 from .figures import run_figures
@@ -76,7 +76,8 @@ class NeuralPipeline:
     def classical(self, algorithm: str):
         """The run's classical reconstruction by ``algorithm``, computed once."""
         if algorithm not in self._classical:
-            rec = classical_volume(algorithm, self.config, self.fitting.scene, self.run_dir, self.device)
+            options = start_options(algorithm, self.config.reconstruction, self.fitting.wider_than_view)
+            rec = classical_volume(algorithm, options, self.fitting.scene, self.run_dir, self.device)
             self._classical[algorithm] = rec
             self.classical_seconds += rec.seconds
         return self._classical[algorithm]

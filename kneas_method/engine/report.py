@@ -129,7 +129,12 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
 
 def with_fitting_box(metrics: dict, fitting) -> dict:
     """``metrics`` with the slices the fitted box has beyond the scene's at each end
-    (``fitting_box_extra_slices``, ``data.truncation.FittingBox``) and a note, where it has any."""
+    (``fitting_box_extra_slices``, ``data.truncation.FittingBox``) and a note, where it has any, and
+    ``wider_than_view`` with a note where the object is wider than the field of view."""
+    if fitting is not None and fitting.wider_than_view:
+        metrics["wider_than_view"] = True
+        metrics["notes"] = list(metrics.get("notes") or []) + [
+            "the object is wider than the detector's field of view: the volume outside it is not measured by every view"]
     if fitting is not None and fitting.slices:
         metrics["fitting_box_extra_slices"] = int(fitting.slices)
         metrics["notes"] = list(metrics.get("notes") or []) + [
