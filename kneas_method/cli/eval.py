@@ -134,3 +134,7 @@ def main(argv=None) -> None:
         return 0
 
     run_cli(body)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -151,3 +151,7 @@ def main(argv=None) -> None:
         return {"mesh": _mesh, "volume": _volume, "figures": _figures}[args.command](args)
 
     run_cli(body)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
