@@ -10,9 +10,8 @@ views say little (outside the field of view), and ASD-POCS run on spreads less i
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 
