@@ -650,3 +650,66 @@ def test_loader_names_what_is_clearly_not_line_integrals(imported, tmp_path):
     with pytest.raises(SceneError, match="NaN/inf"):
         check_line_integrals(np.full(p.shape, np.nan, np.float32), "scan", "train.projections")
     assert isinstance(imported, Scene)
+
+
+def test_nan_or_inf_pixels_are_refused_naming_the_views(scan, tmp_path, capsys):
+    p = scan.p.astype(np.float32).copy()
+    p[3, 5, 7], p[40, 0, 0] = np.nan, np.inf
+    itk.imwrite(itk.image_from_array(p), str(tmp_path / "nan.mha"))
+    code, _, err = run_cli(["import", str(tmp_path / "nan.mha"), "--geometry", str(scan.xml), "-o", str(tmp_path / "s.pickle")], capsys)
+    msg = " ".join(err.split())
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "2 NaN/inf pixels in 2 of 72 projections (indices 3, 40" in msg, err
+    assert not (tmp_path / "s.pickle").exists()
+
+
+def test_an_i0_below_the_airs_counts_is_refused_with_the_fix(scan, tmp_path, capsys):
+    counts = (61000.0 * np.exp(-scan.p)).astype(np.float32)
+    itk.imwrite(itk.image_from_array(counts), str(tmp_path / "counts.mha"))
+    argv = ["import", str(tmp_path / "counts.mha"), "--geometry", str(scan.xml), "--volume-size", "16", "-o", str(tmp_path / "s.pickle")]
+    code, _, err = run_cli([*argv, "--i0", "1000"], capsys)
+    msg = " ".join(err.split())
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--i0 1000 is below the counts at the projections' border" in msg, err
+    assert "leave --i0 out" in msg and "geometry:" not in msg
+    code, _, err = run_cli([*argv, "--i0", "61000"], capsys)  # the right one imports
+    assert code == 0, err
+
+
+def test_a_forced_kind_the_values_contradict_is_warned_about(scan, tmp_path, capsys):
+    intensities = np.exp(-scan.p).astype(np.float32)
+    itk.imwrite(itk.image_from_array(intensities), str(tmp_path / "norm.mha"))
+    argv = ["import", str(tmp_path / "norm.mha"), "--geometry", str(scan.xml), "--volume-size", "16", "-o", str(tmp_path / "s.pickle")]
+    code, out, err = run_cli([*argv, "--kind", "line-integrals"], capsys)
+    assert code == 0, err
+    warning = [line for line in out.splitlines() if line.startswith("warning:")]
+    assert len(warning) == 1 and "--kind line-integrals" in warning[0] and "read as normalized" in " ".join(out.split())
+    code, out, err = run_cli([*argv, "--kind", "normalized"], capsys)  # the kind they are: no warning
+    assert code == 0 and "warning:" not in out, out
+
+
+def test_a_detector_without_pixel_size_or_origin_is_refused_naming_the_flags(scan, tmp_path, capsys):
+    """A TIFF stack carries no pixel size or origin: read as 1 mm pixels from the central ray, the field
+    of view every view sees is a sliver; refused, naming --pixel-mm and --centre-detector."""
+    itk.imwrite(itk.image_from_array(np.ascontiguousarray(scan.p.astype(np.float32))), str(tmp_path / "stack.tif"))
+    short = tmp_path / "short.xml"  # a short scan (200°), whose field of view is the part of the detector on both sides
+    write_rtk_xml(rtk_geometry(np.linspace(0.0, 200.0, len(scan.angles)), px=0.0), short)
+    argv = ["import", str(tmp_path / "stack.tif"), "--geometry", str(short), "--volume-size", "16", "-o", str(tmp_path / "s.pickle")]
+    code, _, err = run_cli(argv, capsys)
+    msg = " ".join(err.split())
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "the field of view every projection sees is" in msg, err
+    assert "--pixel-mm and --centre-detector" in msg and not (tmp_path / "s.pickle").exists()
+    code, _, err = run_cli([*argv, "--pixel-mm", str(DU), str(DV), "--centre-detector"], capsys)
+    assert code == 0, err
+
+
+def test_the_scene_is_named_after_its_pickle(scan, tmp_path, capsys):
+    code, _, err = run_cli(["import", str(scan.proj), "--geometry", str(scan.xml), "--volume-size", "16",
+                            "-o", str(tmp_path / "myknee.pickle")], capsys)
+    assert code == 0, err
+    assert load_naf(tmp_path / "myknee.pickle").name == "myknee"
+
+
+def test_rtk_export_to_a_folder_that_cannot_be_made_is_one_line(imported, tmp_path, capsys):
+    save_naf(imported, tmp_path / "scan.pickle")
+    (tmp_path / "afile").write_text("x")
+    code, _, err = run_cli(["export", str(tmp_path / "scan.pickle"), "--rtk", str(tmp_path / "afile" / "rtk")], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "is a file, not a folder; choose another with --rtk" in " ".join(err.split()), err

@@ -64,7 +64,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("projections", nargs="+", metavar="PROJECTIONS",
                    help="projection images (any format ITK reads: .mha, .mhd, .nrrd, .tif, ...): one stack, several files, a folder or a quoted glob")
     m.add_argument("--geometry", required=True, metavar="GEOMETRY.xml", help="RTK geometry XML (rtksimulatedgeometry, rtkvarianobigeometry, ... write it)")
-    m.add_argument("-o", "--output", required=True, metavar="SCENE.pickle", help="scene pickle to write")
+    m.add_argument("-o", "--output", required=True, metavar="SCENE.pickle",
+                   help="scene pickle to write; its file name is the scene's name (run folders are made under it)")
     m.add_argument("--kind", choices=("auto", "counts", "normalized", "line-integrals"), default="auto",
                    help="what the pixel values are (default auto: detected; counts when --flat/--dark/--i0 is given)")
     m.add_argument("--flat", metavar="FLAT", default=None, help="flat-field image(s) without the object (raw counts); frames are averaged")
@@ -74,7 +75,6 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--voxel-mm", type=float, default=None, metavar="MM", help="voxel size in mm (default: a detector pixel at the isocentre)")
     m.add_argument("--pixel-mm", type=float, nargs="+", default=None, metavar="MM", help="detector pixel size (one, or u and v) when the files carry none (TIFF)")
     m.add_argument("--centre-detector", action="store_true", help="put the detector centre at u = v = 0 (files without an origin; offsets then come from the XML)")
-    m.add_argument("--name", default=None, help="scene name (default: the geometry file's stem)")
 
     i = sub.add_parser("inspect", help="describe a scene (pickle or built-in name) and draw a projection and slices")
     i.add_argument("scene", metavar="SCENE", help="scene pickle or built-in scene name")
@@ -176,7 +176,7 @@ def _import(args) -> int:
         scene = import_scan(
             args.projections, args.geometry, flat=args.flat, dark=args.dark, i0=args.i0, kind=args.kind,
             volume_size=args.volume_size, voxel_mm=args.voxel_mm, pixel_mm=args.pixel_mm,
-            centre_detector=args.centre_detector, name=args.name,
+            centre_detector=args.centre_detector, name=Path(args.output).stem,
         )
         save_naf(scene, out)
     g = scene.geometry.to_mm()
@@ -190,6 +190,8 @@ def _import(args) -> int:
     say(f"  detector {tuple(scene.geometry.n_detector)} px x {_fmt(g['dDetector'])} mm, offset {_fmt(g['offDetector'])} mm (kneas u, v)")
     i0 = f", I0 {conv['i0']:.6g}" + (" (estimated from the air border)" if conv.get("i0_estimated_from") else "") if "i0" in conv else ""
     say(f"  values: {conv['kind']}{' (detected)' if conv['detected'] else ''}: {conv['formula']}{i0}")
+    if conv.get("kind_warning"):
+        say(f"warning: {conv['kind_warning']}")
     p = scene.train.projections
     neg = 100 * float(np.mean(p < 0))
     say(f"  line integrals {_range(p)}" + (f", {neg:.1f} % below 0 (noise in air, kept)" if neg else ""))
@@ -198,8 +200,8 @@ def _import(args) -> int:
     say(f"  frame: {imp['frame']}")
     from ..engine.loading import HOLDOUT_AT_MOST, HOLDOUT_FRACTION
 
-    say(f"  no ground truth and no held-out views: kneas-train holds every {round(1 / HOLDOUT_FRACTION)}th projection "
-        f"(at most {HOLDOUT_AT_MOST}) out of training for the 2D metrics and trains on the rest")
+    say(f"  no ground truth and no held-out views: kneas-train holds {HOLDOUT_FRACTION:.0%} of the projections (at most "
+        f"{HOLDOUT_AT_MOST}, evenly spread over the scan) out of training for the 2D metrics and trains on the rest")
     for note in imp["notes"]:
         say(f"note: {note}")
     return 0

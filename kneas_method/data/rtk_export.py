@@ -77,7 +77,9 @@ def export_rtk(scene: Scene, out_dir, *, views: str = "train") -> dict:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--rtk {out} is a file; give a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    from ..engine.run_dir import check_writable
+
+    check_writable(out, needed_bytes=0, flag="--rtk")
     chosen = export_views(scene, views)
     affine = scene_world_affine(scene)
     shift = float(affine[1, 3])

@@ -283,6 +283,41 @@ def estimate_i0(counts: np.ndarray) -> tuple[float, dict]:
     return i0, {"air_fraction": round(fraction, 4), "relative_noise": spread}
 
 
+def check_finite_views(data: np.ndarray) -> None:
+    """Refuse projections ``[N, nV, nU]`` with NaN or inf pixels, naming the views (one-line SceneError)."""
+    finite = np.isfinite(np.asarray(data)).reshape(len(data), -1)
+    bad = np.flatnonzero(~finite.all(axis=1))
+    if bad.size:
+        listed = ", ".join(str(int(k)) for k in bad[:10]) + (f" and {bad.size - 10} more" if bad.size > 10 else "")
+        raise SceneError(f"{int((~finite).sum())} NaN/inf pixels in {bad.size} of {len(data)} projections (indices {listed}, from 0): "
+                         "fix those images, or drop them and their <Projection> entries from the geometry")
+
+
+def check_given_i0(counts: np.ndarray, i0: float, dark=None) -> None:
+    """Refuse an ``--i0`` well below the counts of the air at the projections' border (one-line SceneError)."""
+    border = _sample(np.asarray(counts)[:, border_mask(counts.shape[1], counts.shape[2])]).astype(np.float64)
+    top = float(np.percentile(border, 99)) - (float(np.mean(dark)) if dark is not None else 0.0)
+    if top > 1.1 * (i0 - (float(np.mean(dark)) if dark is not None else 0.0)):
+        raise SceneError(f"--i0 {i0:g} is below the counts at the projections' border ({top:.6g} at its 99th percentile, the air): "
+                         "I0 is the count without the object; give that, or leave --i0 out to estimate it from the air")
+
+
+def kind_mismatch(data: np.ndarray, kind: str) -> Optional[str]:
+    """A warning where ``--kind`` says ``kind`` but :func:`detect_kind` reads ``data`` as another
+    kind (the border is taken as air: an object that fills it can fool the test, so not refused)."""
+    try:
+        seen = detect_kind(data)
+    except SceneError:
+        return None
+    intensities = ("counts", "normalized")
+    if seen == kind or (seen in intensities and kind in intensities):
+        return None
+    how = ("sits at the top of their values, as air does in intensities" if seen in intensities
+           else "sits at the bottom of their values, as air does in line integrals")
+    return (f"--kind {kind}, but the projections' border (mostly air) {how}: they read as {seen}; if the border is air, drop "
+            f"--kind (or give --kind {seen})")
+
+
 def to_line_integrals(data: np.ndarray, kind: str = "auto", *, flat: Optional[np.ndarray] = None,
                       dark: Optional[np.ndarray] = None, i0: Optional[float] = None) -> tuple[np.ndarray, dict]:
     """Projection values -> line integrals ``p`` [N, nV, nU] float32.
@@ -299,12 +334,16 @@ def to_line_integrals(data: np.ndarray, kind: str = "auto", *, flat: Optional[np
     """
     if kind not in KINDS:
         raise ConfigError(f"--kind {kind!r} is not known; use one of {', '.join(KINDS)}")
+    warning = None
     if kind == "auto":
         kind = "counts" if (flat is not None or dark is not None or i0 is not None) else detect_kind(data)
         detected = True
     else:
         detected = False
+        warning = kind_mismatch(data, kind)
     info: dict = {"kind": kind, "detected": detected}
+    if warning:
+        info["kind_warning"] = warning
     if kind != "counts" and (flat is not None or dark is not None or i0 is not None):
         raise ConfigError(f"--flat/--dark/--i0 apply to raw counts, but the projections are given as {kind}; drop them or use --kind counts")
     if kind == "line-integrals":
@@ -333,6 +372,8 @@ def to_line_integrals(data: np.ndarray, kind: str = "auto", *, flat: Optional[np
                 info.update(i0_info)
             if not (math.isfinite(float(i0)) and float(i0) > 0):
                 raise ConfigError(f"--i0 is {i0}; it must be a positive intensity (the counts without the object)")
+            if "i0_estimated_from" not in info:
+                check_given_i0(data, float(i0), dark)
             scale = float(i0) - (dark if dark is not None else 0.0)
             if np.any(np.asarray(scale) <= 0):
                 raise SceneError("I0 minus the dark field is <= 0; check --i0 and --dark")
@@ -377,6 +418,22 @@ def check_detector_scale(geo: ImportedGeometry) -> None:
             f"the detector is {width:.4g} mm wide ({geo.d_detector[0]:.4g} mm pixels), a {fov:.4g} mm field of view with the source "
             f"{geo.dso:.6g} mm from the isocentre; the projections' pixel spacing is probably in metres, not mm: "
             f"give --pixel-mm {scaled} (or write the images with their spacing in mm)")
+
+
+MIN_FOV_VOXELS = 4  # across the field of view's diameter, below which no reconstruction is possible
+
+
+def check_field_of_view(geo: ImportedGeometry, grid: dict, notes: Sequence[str] = ()) -> None:
+    """Refuse a field of view a few voxels across (the central ray at the detector's edge: images
+    without a pixel size or origin, a wrong offset); one-line SceneError naming the fix."""
+    across = 2 * grid["fov_radius_mm"] / grid["dVoxel"][0]
+    if across >= MIN_FOV_VOXELS:
+        return
+    why = ("the images carry pixel spacing 1 mm and origin (0, 0) (no geometry in the files, as TIFFs), which puts the central ray "
+           "at the first pixel: give --pixel-mm and --centre-detector" if any("origin (0, 0)" in n for n in notes)
+           else "check the detector's origin and ProjectionOffsetX, or give --centre-detector")
+    raise SceneError(f"the field of view every projection sees is {2 * grid['fov_radius_mm']:.3g} mm across ({across:.2g} voxels of "
+                     f"{grid['dVoxel'][0]:.3g} mm): the central ray meets the detector at its edge; {why}")
 
 
 def default_grid(geo: ImportedGeometry, *, volume_size: Optional[int] = None, voxel_mm: Optional[float] = None) -> dict:
@@ -479,6 +536,7 @@ def import_scan(
             hint = (f"the stack reads as {n_img} images of {n_u}x{n_v} pixels, and one of the image axes has {len(rtk_geom)} entries: "
                     "write the stack with the projection index as its last ITK axis (numpy order [projection, v, u])")
         raise SceneError(f"{n_img} projection images but {geometry_xml.name} describes {len(rtk_geom)} projections; {hint}")
+    check_finite_views(stack.data)
     imported = rtk_to_kneas(rtk_geom, stack.grid, label=geometry_xml.name)
     check_detector_scale(imported)
     flat_arr = read_field(flat, stack.grid, "flat") if flat is not None else None
@@ -486,9 +544,11 @@ def import_scan(
     p_rtk, conversion = to_line_integrals(stack.data, kind, flat=flat_arr, dark=dark_arr, i0=i0)
     from .naf import check_line_integrals
 
-    check_line_integrals(p_rtk, geometry_xml.stem, "imported projections")
+    first = Path(stack.files[0]).name
+    check_line_integrals(p_rtk, first if len(stack.files) == 1 else f"{first}..", "imported projections")
     p = rtk_rows_to_kneas(p_rtk)
     grid = default_grid(imported, volume_size=volume_size, voxel_mm=voxel_mm)
+    check_field_of_view(imported, grid, stack.notes)
     geometry = Geometry.from_mm(
         mode=imported.mode, DSD=imported.dsd, DSO=imported.dso, nDetector=imported.n_detector, dDetector=imported.d_detector,
         nVoxel=grid["nVoxel"], dVoxel=grid["dVoxel"], offOrigin=grid["offOrigin"], offDetector=imported.off_detector,

@@ -224,8 +224,8 @@ HOLDOUT_FRACTION, HOLDOUT_AT_MOST = 0.1, 10  # training views held out of a scen
 
 
 def holdout_views(scene, fraction: float = HOLDOUT_FRACTION, at_most: int = HOLDOUT_AT_MOST):
-    """A scene with no held-out views (real scans): every k-th training view is held out
-    for the 2D metrics (``fraction`` of them, at least 1, at most ``at_most``) and the
+    """A scene with no held-out views (real scans): ``fraction`` of its training views (at least 1,
+    at most ``at_most``), evenly spread over the scan, are held out for the 2D metrics and the
     rest kept for training. Deterministic; recorded in ``scene.meta["holdout"]``."""
     n = len(scene.train)
     if n < 2:
