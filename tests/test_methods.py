@@ -264,3 +264,20 @@ def test_preset_validation_and_checkpoints_fall_on_the_last_epoch(name):
     t = presets.TABLE[name]["trainer"]
     assert t["epochs"] % t["eval_every"] == 0 and t["epochs"] % t["checkpoint_every"] == 0
     assert t["prior_epochs"] % t["checkpoint_every"] == 0
+
+
+def test_a_bounds_warning_is_said_once_not_raised_again_as_a_python_warning(tmp_path, capsys):
+    import warnings
+
+    import numpy as np
+
+    from conftest import sphere_scene
+    from kneas_method.engine.bounds_stage import estimate_bounds
+
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu", num_materials=2))
+    volume = np.random.default_rng(3).normal(0.5, 0.1, 40 ** 3).clip(0.01)  # one material, forced into two: no valley
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a Python warning would fail here
+        result = estimate_bounds(cfg, sphere_scene(), tmp_path, torch.device("cpu"), volume=volume.reshape(40, 40, 40))
+    said = [line for line in capsys.readouterr().out.splitlines() if "bounds warning:" in line]
+    assert result.K == 2 and len(said) >= 1 and any("midpoint" in line for line in said)

@@ -17,6 +17,7 @@ import dataclasses
 import hashlib
 import json
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -253,7 +254,9 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
         smoothed.append(histogram_smoothing(volume))
         return smoothed[0]
 
-    gmm = run_mixtures(config, K=K).fit(volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the mixtures' remarks: said below as "bounds warning:" lines, once
+        gmm = run_mixtures(config, K=K).fit(volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
     rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
