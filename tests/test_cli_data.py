@@ -36,6 +36,9 @@ def test_simulate_phantom_tiny_and_inspect(tmp_path, capsys):
     assert code == 0
     assert "DSD 1500 mm" in stdout and "(12, 12, 12)" in stdout and "train: 3 views" in stdout
     assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (tmp_path / "afile").write_text("x")  # a --png that cannot be written: refused before the report, in one line
+    code, stdout, err = run(["inspect", str(out), "--png", str(tmp_path / "afile" / "foot.png")], capsys)
+    assert code == 2 and "DSD" not in stdout and len(err.strip().splitlines()) == 1 and "choose another with --png" in " ".join(err.split())
 
 
 def test_simulate_options_reach_the_scene(tmp_path, capsys):

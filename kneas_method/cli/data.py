@@ -224,7 +224,7 @@ def _export(args) -> int:
 
 def _fmt(values) -> str:
     arr = np.atleast_1d(np.asarray(values, dtype=float))
-    return "(" + ", ".join(f"{v:.4g}" for v in arr) + ")"
+    return "(" + ", ".join(f"{v + 0.0:.4g}" for v in arr) + ")"  # + 0.0: no "-0"
 
 
 def _range(arr) -> str:
@@ -234,6 +234,12 @@ def _range(arr) -> str:
 def _inspect(args) -> int:
     from ..data.scenes import resolve_scene
 
+    if args.png:  # refused before the report, not after it
+        from ..engine.run_dir import check_writable
+
+        if Path(args.png).is_dir():
+            raise ConfigError(f"--png {args.png} is a folder; give a file name such as {Path(args.png) / 'scene.png'}")
+        check_writable(Path(args.png).parent, needed_bytes=0, flag="--png")
     scene = resolve_scene(args.scene, flag="SCENE", progress=lambda msg: console.print(msg, soft_wrap=True, markup=False))
     g = scene.geometry.to_mm()
     c = console
