@@ -58,9 +58,11 @@ def test_pickle_payload_is_refused_and_runs_nothing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     path = tmp_path / "step-00000001.ckpt"
     torch.save({"format": 1, "model": {}, "evil": Payload()}, path)
-    with pytest.raises(CheckpointError, match="cannot be loaded safely"):
+    with pytest.raises(CheckpointError, match="cannot be loaded safely") as info:
         load_checkpoint_file(path)
     assert not (tmp_path / "PWNED_CHECKPOINT").exists()
+    reason = str(info.value).split("(", 1)[1].rsplit(");", 1)[0]
+    assert len(reason) <= 160 and "\n" not in str(info.value)  # torch's long explanation cut to its first sentence, whole
 
 
 def test_nothing_to_resume(tmp_path):

@@ -77,8 +77,10 @@ def load_checkpoint_file(path: str | Path, *, method: str | None = None, map_loc
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # damaged zip, or an unsafe pickle refused by weights_only
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise CheckpointError(f"checkpoint {path} cannot be loaded safely ({reason[:200]}); it is damaged or not a kneas checkpoint") from None
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        reason = first.split(". ")[0].rstrip(".")  # its first sentence, whole
+        reason = reason if len(reason) <= 160 else reason[:157] + "..."
+        raise CheckpointError(f"checkpoint {path} cannot be loaded safely ({reason}); it is damaged or not a kneas checkpoint") from None
     if not isinstance(state, dict) or "format" not in state or "model" not in state:
         raise CheckpointError(f"{path} is not a kneas checkpoint (no format/model entries)")
     if state["format"] != CHECKPOINT_FORMAT:
