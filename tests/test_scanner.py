@@ -713,3 +713,16 @@ def test_rtk_export_to_a_folder_that_cannot_be_made_is_one_line(imported, tmp_pa
     (tmp_path / "afile").write_text("x")
     code, _, err = run_cli(["export", str(tmp_path / "scan.pickle"), "--rtk", str(tmp_path / "afile" / "rtk")], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "is a file, not a folder; choose another with --rtk" in " ".join(err.split()), err
+
+
+def test_repeated_angles_and_a_limited_arc_are_named_in_notes(scan, imported, tmp_path):
+    assert not [n for n in imported.meta["import"]["notes"] if "angle" in n]  # a full orbit: nothing to say
+    short = tmp_path / "short.xml"  # a short scan of 200 deg across 0 deg: enough for this fan (about 27 deg)
+    write_rtk_xml(rtk_geometry(np.mod(np.linspace(300.0, 500.0, len(scan.angles)), 360.0)), short)
+    notes = import_scan([str(scan.proj)], short, volume_size=16).meta["import"]["notes"]
+    assert not [n for n in notes if "limited-angle" in n or "repeat" in n], notes
+    limited = tmp_path / "limited.xml"  # 36 angles over 86 deg, each twice
+    half = np.linspace(0.0, 86.0, len(scan.angles) // 2)
+    write_rtk_xml(rtk_geometry(np.repeat(half, 2)), limited)
+    notes = " ".join(import_scan([str(scan.proj)], limited, volume_size=16).meta["import"]["notes"])
+    assert "36 of the 72 projections repeat another's angle" in notes and "span 86.0 deg" in notes and "limited-angle" in notes

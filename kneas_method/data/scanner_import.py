@@ -485,6 +485,30 @@ def default_grid(geo: ImportedGeometry, *, volume_size: Optional[int] = None, vo
             "fov_radius_mm": r, "fov_height_mm": h, "full_scan": bool(full)}
 
 
+def angle_notes(geo: ImportedGeometry, full_scan: bool) -> list[str]:
+    """Remarks on the projection angles: projections that share an angle, and an arc shorter than
+    a short scan's 180° plus the fan angle (limited angle: every method smears along the directions
+    not seen). Accepted as given; the user is told."""
+    notes = []
+    a = np.mod(np.asarray(geo.angles, dtype=np.float64), 2 * math.pi)
+    repeats = len(a) - np.unique(np.round(a, 6)).size
+    if repeats:
+        notes.append(f"{repeats} of the {len(a)} projections repeat another's angle (to 1e-6 rad): check the geometry's "
+                     "GantryAngle values if that is not intended")
+    if not full_scan and len(a) > 1:
+        (nu, _), (du, _), (ou, _) = geo.n_detector, geo.d_detector, geo.off_detector
+        u_most = abs(ou) + nu * du / 2
+        fan = 2 * math.atan(u_most / geo.dsd) if geo.mode == "cone" else 0.0
+        u = np.unique(np.round(a, 6))
+        arc = 2 * math.pi - float(np.max(np.diff(np.concatenate([u, [u[0] + 2 * math.pi]]))))  # all but the largest gap
+        step = arc / max(len(u) - 1, 1)
+        if arc + step < math.pi + fan - 1e-6:
+            notes.append(f"the projections span {math.degrees(arc):.1f} deg, less than a short scan's 180 deg plus the fan's "
+                         f"{math.degrees(fan):.1f} deg: a limited-angle scan; every method smears the volume along the directions "
+                         "no projection saw")
+    return notes
+
+
 # --------------------------------------------------------------------------- the scene
 def _files_meta(files: Sequence[str], limit: int = 20) -> dict:
     files = [str(f) for f in files]
@@ -555,7 +579,7 @@ def import_scan(
     )
     angles = imported.angles
     arc = float(np.ptp(angles)) if len(angles) > 1 else 0.0
-    notes = list(stack.notes) + list(imported.notes)
+    notes = list(stack.notes) + list(imported.notes) + angle_notes(imported, grid["full_scan"])
     if conversion.get("clamped_note"):
         notes.append(conversion["clamped_note"])
     conversion.update({"flat": str(flat) if flat else None, "dark": str(dark) if dark else None, "pixel_type": stack.dtype})
