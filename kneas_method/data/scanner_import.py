@@ -420,20 +420,22 @@ def check_detector_scale(geo: ImportedGeometry) -> None:
             f"give --pixel-mm {scaled} (or write the images with their spacing in mm)")
 
 
-MIN_FOV_VOXELS = 4  # across the field of view's diameter, below which no reconstruction is possible
+MIN_FOV_PIXELS = 4  # detector pixels (at the isocentre) across the field of view, below which nothing can be reconstructed
 
 
-def check_field_of_view(geo: ImportedGeometry, grid: dict, notes: Sequence[str] = ()) -> None:
-    """Refuse a field of view a few voxels across (the central ray at the detector's edge: images
-    without a pixel size or origin, a wrong offset); one-line SceneError naming the fix."""
-    across = 2 * grid["fov_radius_mm"] / grid["dVoxel"][0]
-    if across >= MIN_FOV_VOXELS:
+def check_field_of_view(geo: ImportedGeometry, notes: Sequence[str] = ()) -> None:
+    """Refuse a field of view a few detector pixels across (the central ray at the detector's edge:
+    images without a pixel size or origin, a wrong offset); one-line SceneError naming the fix."""
+    radius = default_grid(geo)["fov_radius_mm"]
+    pixel = geo.d_detector[0] * (geo.dso / geo.dsd if geo.mode == "cone" else 1.0)
+    across = 2 * radius / pixel
+    if across >= MIN_FOV_PIXELS:
         return
     why = ("the images carry pixel spacing 1 mm and origin (0, 0) (no geometry in the files, as TIFFs), which puts the central ray "
            "at the first pixel: give --pixel-mm and --centre-detector" if any("origin (0, 0)" in n for n in notes)
            else "check the detector's origin and ProjectionOffsetX, or give --centre-detector")
-    raise SceneError(f"the field of view every projection sees is {2 * grid['fov_radius_mm']:.3g} mm across ({across:.2g} voxels of "
-                     f"{grid['dVoxel'][0]:.3g} mm): the central ray meets the detector at its edge; {why}")
+    raise SceneError(f"the field of view every projection sees is {2 * radius:.3g} mm across ({across:.2g} detector pixels at the "
+                     f"isocentre): the central ray meets the detector at its edge; {why}")
 
 
 def default_grid(geo: ImportedGeometry, *, volume_size: Optional[int] = None, voxel_mm: Optional[float] = None) -> dict:
@@ -563,6 +565,7 @@ def import_scan(
     check_finite_views(stack.data)
     imported = rtk_to_kneas(rtk_geom, stack.grid, label=geometry_xml.name)
     check_detector_scale(imported)
+    check_field_of_view(imported, stack.notes)
     flat_arr = read_field(flat, stack.grid, "flat") if flat is not None else None
     dark_arr = read_field(dark, stack.grid, "dark") if dark is not None else None
     p_rtk, conversion = to_line_integrals(stack.data, kind, flat=flat_arr, dark=dark_arr, i0=i0)
@@ -572,7 +575,6 @@ def import_scan(
     check_line_integrals(p_rtk, first if len(stack.files) == 1 else f"{first}..", "imported projections")
     p = rtk_rows_to_kneas(p_rtk)
     grid = default_grid(imported, volume_size=volume_size, voxel_mm=voxel_mm)
-    check_field_of_view(imported, grid, stack.notes)
     geometry = Geometry.from_mm(
         mode=imported.mode, DSD=imported.dsd, DSO=imported.dso, nDetector=imported.n_detector, dDetector=imported.d_detector,
         nVoxel=grid["nVoxel"], dVoxel=grid["dVoxel"], offOrigin=grid["offOrigin"], offDetector=imported.off_detector,
