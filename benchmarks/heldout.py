@@ -43,6 +43,8 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
   view of 54 mm radius, narrower than the leg (62 mm), so most views miss part of it (truncated data).
 * ``knee-narrow-noisy``: ``knee-narrow`` with the noisy scans' detector noise (added in the 70th stop,
   with ``head-narrow``: a count chosen on clean data checked on noise, whose ASD-POCS peaks early).
+* ``knee-long-narrow``: ``knee-long``'s leg on ``knee-narrow``'s detector (added in the 70th stop): truncated
+  along the axis and across it at once, as a cone-beam scan of a leg is; both mechanisms at once.
 * ``head-narrow``: ``head-256`` on the middle 136 of its 256 columns (added in the 70th stop, after the
   start's count for such scans was chosen on ``knee-narrow``, to check it on other anatomy and a
   larger detector): a field of view about 87 % of the head's width, as ``knee-narrow``'s is of the leg's.
@@ -66,7 +68,7 @@ import numpy as np
 
 SCENES = ("head-256", "head-vox256", "jaw-noisy", "head-textured-noisy", "foot-noisy", "chest-noisy", "abdomen-noisy", "head-noisy",
           "knee", "knee-physical", "knee-long", "knee-long-noisy", "knee-halffan", "knee-narrow",
-          "knee-narrow-noisy", "head-narrow")
+          "knee-narrow-noisy", "head-narrow", "knee-long-narrow")
 
 
 def head_phantom():
@@ -200,9 +202,10 @@ def heldout_scene(name: str):
         return scene
     if name == "knee-halffan":
         return _offset_detector_scan(knee_phantom(), _knee_scan(), name, columns=112, past_centre=16)
-    if name in ("knee-narrow", "knee-narrow-noisy"):  # centred, too narrow for the leg
+    if name in ("knee-narrow", "knee-narrow-noisy", "knee-long-narrow"):  # centred, too narrow for the leg
         cfg = dataclasses.replace(_knee_scan(), noise=name.endswith("-noisy"))
-        return _offset_detector_scan(knee_phantom(), cfg, name, columns=80, past_centre=40)
+        phantom = knee_phantom(1.0, 130.0 if name == "knee-long-narrow" else 0.0)
+        return _offset_detector_scan(phantom, cfg, name, columns=80, past_centre=40)
     if name in ("knee", "knee-physical", "knee-long", "knee-long-noisy"):
         cfg = dataclasses.replace(_knee_scan(), noise=name.endswith("-noisy"))
         phantom = knee_phantom(KNEE_PHYSICAL_SCALE if name == "knee-physical" else 1.0, 130.0 if name.startswith("knee-long") else 0.0)
