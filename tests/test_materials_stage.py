@@ -128,3 +128,24 @@ def test_an_interrupted_materials_stage_is_redone_on_resume(tiny_scene, tmp_path
     monkeypatch.setattr(neural_pipeline, "materials_stage", lambda *a, **kw: calls.append(2) or real(*a, **kw))
     code, out, err = run(["--resume", str(run_dir)], capsys)
     assert code == 0 and calls == [1, 2] and (run_dir / "metrics.json").is_file(), err
+
+
+def test_a_run_stopped_between_the_refits_checkpoint_and_bounds_json_resumes_with_the_new_k(scene_path, tmp_path, monkeypatch):
+    from kneas_method.engine.neural_pipeline import refit_bounds
+
+    _, target = three_levels()
+    monkeypatch.setattr("kneas_method.engine.evaluate.sample_volume", lambda model, geometry, **kw: target)
+    config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1)
+    config2, bounds2 = stage_mod.materials_stage(trainer, scene, config, bounds, run_dir)
+    assert bounds2.K > 1
+    # the stop: the checkpoint holds the new model, bounds.json and config.json still the start's K
+    (run_dir / "bounds.json").write_text(json.dumps(bounds.to_json()))
+    save_run_config(run_dir, config)
+    mended = refit_bounds(BoundsResult.from_json(json.loads((run_dir / "bounds.json").read_text())), run_dir, config.method)
+    assert mended.K == bounds2.K and mended.alphas == pytest.approx(bounds2.alphas) and mended.betas == pytest.approx(bounds2.betas)
+    assert json.loads((run_dir / "bounds.json").read_text())["K"] == bounds2.K and mended.details["start_bounds"]["K"] == 1
+    k = mended.K  # the trainer rebuilt with that K resumes from the checkpoint
+    config3 = dataclasses.replace(config, num_materials=k, model=dataclasses.replace(config.model, num_materials=k))
+    resumed = Trainer(config3, scene, run_dir, epochs=1, device="cpu", bounds=(mended.alphas, mended.betas))
+    assert resumed.resume() is not None and resumed.materials_refit["K"] == k
+    assert refit_bounds(mended, run_dir, config.method) is mended  # nothing more to mend
