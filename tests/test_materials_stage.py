@@ -131,7 +131,7 @@ def test_an_interrupted_materials_stage_is_redone_on_resume(tiny_scene, tmp_path
 
 
 def test_a_run_stopped_between_the_refits_checkpoint_and_bounds_json_resumes_with_the_new_k(scene_path, tmp_path, monkeypatch):
-    from kneas_method.engine.neural_pipeline import refit_bounds
+    from kneas_method.engine.materials_stage import refit_bounds
 
     _, target = three_levels()
     monkeypatch.setattr("kneas_method.engine.evaluate.sample_volume", lambda model, geometry, **kw: target)

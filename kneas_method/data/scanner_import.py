@@ -296,8 +296,9 @@ def check_finite_views(data: np.ndarray) -> None:
 def check_given_i0(counts: np.ndarray, i0: float, dark=None) -> None:
     """Refuse an ``--i0`` well below the counts of the air at the projections' border (one-line SceneError)."""
     border = _sample(np.asarray(counts)[:, border_mask(counts.shape[1], counts.shape[2])]).astype(np.float64)
-    top = float(np.percentile(border, 99)) - (float(np.mean(dark)) if dark is not None else 0.0)
-    if top > 1.1 * (i0 - (float(np.mean(dark)) if dark is not None else 0.0)):
+    offset = float(np.mean(dark)) if dark is not None else 0.0
+    top = float(np.percentile(border, 99)) - offset
+    if top > 1.1 * (i0 - offset):
         raise SceneError(f"--i0 {i0:g} is below the counts at the projections' border ({top:.6g} at its 99th percentile, the air): "
                          "I0 is the count without the object; give that, or leave --i0 out to estimate it from the air")
 

@@ -79,3 +79,31 @@ def materials_stage(trainer, scene, config, bounds: Optional[BoundsResult], run_
              title=f"{scene.name}: attenuation bounds found again (the trained volume after a bilateral filter), K = {K}")
     say(f"materials: K = {K} written into the model in {found['seconds']:.0f} s", markup=False)
     return config, bounds
+
+
+def refit_bounds(bounds: BoundsResult, run_dir: Path, method: str) -> BoundsResult:
+    """``bounds`` (a resumed run's ``bounds.json``), or where the run's newest checkpoint holds a
+    model with the materials found again on the trained volume and the run stopped before
+    ``bounds.json`` said so (``materials_stage`` writes the checkpoint first), those bounds,
+    written into ``bounds.json``: the model is then rebuilt with the checkpoint's K."""
+    from .checkpoint import CheckpointError, list_checkpoints, load_latest_checkpoint
+
+    folder = Path(run_dir) / "checkpoints"
+    if not list_checkpoints(folder):
+        return bounds
+    try:
+        state, _, _ = load_latest_checkpoint(folder, method=method, map_location="cpu")
+    except CheckpointError:
+        return bounds  # the trainer says why when it resumes
+    found = (state.get("extra") or {}).get("materials_refit")
+    if not found or not found.get("refit") or int(found["K"]) == bounds.K:
+        return bounds
+    b = [float(v) for v in found["boundaries"]]
+    refit = BoundsResult([hi - lo for lo, hi in zip(b, b[1:])], b[:-1], int(found["K"]),
+                         "the materials found again on the trained volume (from the checkpoint)", bounds.prior_wall_time_s,
+                         {**bounds.details, "materials_refit": found,
+                          "start_bounds": {"K": bounds.K, "alphas": bounds.alphas, "betas": bounds.betas, "source": bounds.source}})
+    write_json(Path(run_dir) / "bounds.json", refit.to_json())
+    say(f"bounds: the run stopped after the materials were found again (K = {refit.K}) and before bounds.json said so; "
+        "taken from the checkpoint", markup=False)
+    return refit
