@@ -620,6 +620,19 @@ def test_bad_files_are_one_line_errors(scan, tmp_path, capsys):
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_truncated_file_says_so_in_one_line(scan, tmp_path, capfd):
+    """A projection file cut short: ITK's reader prints its reason on the C++ stderr and raises an
+    exception that blames the path; the error is one line that says the file is truncated, and
+    nothing of ITK's own output reaches the terminal."""
+    data = scan.proj.read_bytes()
+    (tmp_path / "cut.mha").write_bytes(data[: len(data) // 2])
+    with pytest.raises(SystemExit) as info:
+        cli.main(["import", str(tmp_path / "cut.mha"), "--geometry", str(scan.xml), "-o", str(tmp_path / "s.pickle")])
+    err = capfd.readouterr().err
+    assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "cut.mha: ITK cannot read it" in err and "truncated" in err and "No such file" not in err, err
+
+
 def test_missing_itk_is_one_line(scan, tmp_path, monkeypatch, capsys):
     real_import = builtins.__import__
 

@@ -8,6 +8,10 @@ an image of size ``(n0, n1, n2)`` (index ``i0`` fastest) is the array
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +57,39 @@ def _one_line(exc: BaseException) -> str:
     return text[:200] or type(exc).__name__
 
 
+@contextlib.contextmanager
+def native_stderr(lines: list):
+    """Collect what C++ code writes to file descriptor 2 inside the block into ``lines`` (ITK's
+    readers print their reason there, e.g. MetaImage's "data not read completely", and raise an
+    exception that does not say it). Where fd 2 cannot be redirected, nothing is collected."""
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        sys.stderr.flush()
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            lines.extend(line for line in tmp.read().decode("utf-8", "replace").splitlines() if line.strip())
+
+
+def _reason(native: list, exc: BaseException) -> str:
+    """Why ITK could not read a file: the reader's own words where it printed them, else the exception's."""
+    if not native:
+        return _one_line(exc)
+    text = " ".join(" ".join(native).split())
+    if "not read completely" in text:
+        return f"{text[:160]}: the file is shorter than its header says (truncated? copy it again)"
+    return text[:200]
+
+
 def read_image(path, *, purpose: str = "reading projection images") -> ImageData:
     """Read one image file (any format ITK reads) or a DICOM series folder.
 
@@ -64,14 +101,18 @@ def read_image(path, *, purpose: str = "reading projection images") -> ImageData
     path = Path(path)
     if not path.exists():
         raise SceneError(f"{path}: no such file; check the path")
+    native: list = []
     try:
-        image = itk.imread(str(path))
+        with native_stderr(native):
+            image = itk.imread(str(path))
         array = np.asarray(itk.array_from_image(image))
         spacing = np.asarray(image.GetSpacing(), dtype=np.float64)
         origin = np.asarray(image.GetOrigin(), dtype=np.float64)
         direction = np.asarray(itk.array_from_matrix(image.GetDirection()), dtype=np.float64)
     except Exception as exc:  # ITK raises RuntimeError / its own types
-        raise SceneError(f"{path.name}: ITK cannot read it ({_one_line(exc)}); check the file and its format") from None
+        raise SceneError(f"{path.name}: ITK cannot read it ({_reason(native, exc)}); check the file and its format") from None
+    if native:  # a reader's warnings on a file it did read: passed on, not lost
+        print("\n".join(native), file=sys.stderr)
     if array.ndim == 3 and image.GetNumberOfComponentsPerPixel() > 1 and array.shape[-1] == image.GetNumberOfComponentsPerPixel():
         raise SceneError(f"{path.name} holds {array.shape[-1]}-component (colour/vector) pixels; projections must be grey values")
     return ImageData(array=array, spacing=spacing, origin=origin, direction=direction, path=str(path))
