@@ -159,6 +159,9 @@ NUMBER_RULES = (
     ("trainer", "correction_noise_factor", False, 0, True), ("trainer", "correction_lr", False, 0, True),
     ("trainer", "correction_curvature", False, 0, True), ("trainer", "denoise_lr", False, 0, True),
     ("datamanager", "num_object_rays", True, 0, True), ("datamanager", "num_air_rays", True, 0, True),
+    ("reconstruction", "iterations", True, 1, True), ("reconstruction", "subsets", True, 1, True),
+    ("reconstruction", "relaxation", False, 0, False), ("reconstruction", "tv_steps", True, 0, True),
+    ("reconstruction", "tv_alpha", False, 0, True),
 )
 
 
@@ -166,7 +169,7 @@ def check_numbers(config) -> None:
     """One-line ConfigError for the first setting of :data:`NUMBER_RULES` out of its range (a
     count below 1, a learning rate of 0, ...), named as its command-line flag."""
     for section, name, whole, lowest, inclusive in NUMBER_RULES:
-        value = getattr(getattr(config, section), name, None)
+        value = getattr(getattr(config, section, None), name, None)
         if value is None:
             continue
         number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
@@ -175,8 +178,8 @@ def check_numbers(config) -> None:
         if not (number and (value >= lowest if inclusive else value > lowest)):
             what = ("a whole number >= " if whole else "a number >= " if inclusive else "a number > ") + f"{lowest:g}"
             raise ConfigError(f"--{section}.{name.replace('_', '-')} must be {what}, got {value!r}")
-    rays = config.datamanager
-    if rays.num_object_rays is not None and rays.num_air_rays is not None and rays.num_object_rays + rays.num_air_rays < 1:
+    rays = getattr(config, "datamanager", None)
+    if rays is not None and rays.num_object_rays is not None and rays.num_air_rays is not None and rays.num_object_rays + rays.num_air_rays < 1:
         raise ConfigError("--datamanager.num-object-rays and --datamanager.num-air-rays are both 0; give at least one ray per step")
 
 
@@ -196,6 +199,7 @@ def resolve(config: RunConfig) -> RunConfig:
     name, _ = choose(config.preset)
     config = validate_choices(config)
     if not isinstance(config, TrainConfig):
+        check_numbers(config)  # its reconstruction's settings, before any scene is loaded or run folder made
         return dataclasses.replace(config, preset=name)
     table = TABLE[name]
     model = _fill(config.model, table["model"])
@@ -221,6 +225,9 @@ def resolve(config: RunConfig) -> RunConfig:
         model = dataclasses.replace(model, num_materials=K)
     elif surfaces and not k_from_data(dataclasses.replace(config, model=model)):
         K = model.num_materials
+        if model.selector == "hard" and K != 2:  # refused here, before a prior is trained or bounds are fitted
+            raise ConfigError(f"the hard selector works only with 2 materials, and {config.method} has K = {K}; "
+                              "add --num-materials 2 (with --bounds, a 2-material file)")
     trainer = _fill(config.trainer, table["trainer"])
     if not (isinstance(trainer.warm_start_steps, int) and trainer.warm_start_steps >= 0):
         raise ConfigError(f"trainer.warm_start_steps must be a whole number >= 0, got {trainer.warm_start_steps!r}")

@@ -26,6 +26,14 @@ CASES = [
     ("eval", ["--scnee", "foot"], ["unrecognized arguments: --scnee", "did you mean --scene"]),
     ("export", ["mesk", "run"], ["invalid choice: 'mesk'", "did you mean mesh"]),
     ("export", ["mesh", "run", "--resolutoin", "3"], ["--resolutoin", "did you mean --resolution"]),
+    ("export", ["mesh", "run", "--chunk", "0"], ["--chunk must be at least 1", "got 0"]),
+    ("export", ["figures", "run", "--views", "-1"], ["--views must be 0 (all) or more, got -1"]),
+    ("train", ["sart", "--reconstruction.iterations", "0", "--output-dir", "{tmp}/out"],
+     ["--reconstruction.iterations must be a whole number >= 1, got 0"]),
+    ("train", ["os-sart", "--reconstruction.subsets", "0", "--output-dir", "{tmp}/out"], ["--reconstruction.subsets", "got 0"]),
+    ("train", ["os-sart", "--reconstruction.relaxation", "0", "--output-dir", "{tmp}/out"], ["--reconstruction.relaxation must be a number > 0"]),
+    ("train", ["k-neas", "--reconstruction.iterations", "0", "--dry-run"], ["--reconstruction.iterations", "got 0"]),
+    ("train", ["k-neas", "--model.selector", "hard", "--output-dir", "{tmp}/out"], ["hard selector works only with 2 materials", "--num-materials 2"]),
     ("data", ["simulte"], ["invalid choice: 'simulte'", "did you mean simulate"]),
     ("data", ["simulate", "--phantom", "fot", "-o", "{tmp}/x.pickle"], ["unknown built-in phantom 'fot'", "did you mean foot"]),
     ("data", ["inspect", "{tmp}/missing.pickle"], ["missing.pickle"]),
@@ -48,6 +56,7 @@ def test_mistakes_are_one_line(module, argv, words, tmp_path, capsys):
     assert err.startswith("error:") and len(err.splitlines()) == 1 and "Traceback" not in err, err
     for word in words:
         assert word in err, (word, err)
+    assert not (tmp_path / "out").exists()  # refused before any run folder is made
 
 
 def test_a_wrong_scene_is_refused_before_any_work_or_output(tmp_path, capsys):
@@ -59,3 +68,18 @@ def test_a_wrong_scene_is_refused_before_any_work_or_output(tmp_path, capsys):
     assert exc.value.code == 2
     assert out == "" and err.startswith("error: --scene") and "missing.pickle" in err, (out, err)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_settings_error_found_in_the_run_leaves_no_run_folder(tmp_path, capsys):
+    """A bounds file with the wrong K is found once the run has started (its folder made): the
+    one-line error, and no folder left behind that --resume or kneas-eval would point into."""
+    cli = importlib.import_module("kneas_method.cli.train")
+    bounds = tmp_path / "b3.json"
+    bounds.write_text('{"alphas": [1, 2, 3], "betas": [0, 0.1, 0.2]}')
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["neas-2m", "--preset", "tiny", "--bounds", str(bounds), "--output-dir", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and err.startswith("error: --bounds") and "3 materials" in err and "K = 2" in err, err
+    assert list(out.iterdir()) == []

@@ -91,6 +91,12 @@ def test_config_file_reruns_saved_config(tmp_path, capsys, monkeypatch):
     assert code == 0 and got[1] == got[0]
     code, _, _ = run_main(["--config", str(path), "--seed", "12"], capsys)
     assert code == 0 and got[2] == dataclasses.replace(got[0], seed=12)
+    code, _, _ = run_main(["--config", str(path), "neas-2m", "--seed", "13"], capsys)  # its own method, named
+    assert code == 0 and got[3] == dataclasses.replace(got[0], seed=13)
+    # another method: the file's settings would be dropped without a word; refused in one line instead
+    code, _, err = run_main(["--config", str(path), "naf"], capsys)
+    assert code == 2 and len(got) == 4 and len(err.strip().splitlines()) == 1
+    assert "holds neas-2m settings" in err and "drop the method name 'naf'" in err, err
 
 
 def _saved_run(tmp_path, capsys, monkeypatch, method="k-neas"):

@@ -100,7 +100,7 @@ def test_mesh_export_kneas(files, tmp_path, capsys):
         if m["name"] != "combined" and m["in_combined"]:
             total += m["triangles"]
     assert info["combined"]["triangles"] == total
-    assert "[every part watertight]" in text  # brackets printed, not eaten as rich markup
+    assert "(checked by: watertight when every part is)" in text
 
 
 def _ball(shape, centre, radius):
@@ -220,6 +220,16 @@ def test_mesh_naf_thresholds_and_says_so(files, tmp_path, capsys):
     # default: Otsu threshold
     assert _cli(["mesh", str(run_dir), "-o", str(tmp_path / "naf2"), "--resolution", "24"]) == 0
     assert "Otsu" in capsys.readouterr().out
+    # a level the attenuation never reaches: no file, the range named, and a failing exit code
+    assert _cli(["mesh", str(run_dir), "-o", str(tmp_path / "naf3"), "--resolution", "24", "--threshold", str(10 * float(mu.max()) + 1)]) == 2
+    out, err = capsys.readouterr()
+    assert "the attenuation spans" in out and "no mesh was written" in err and "--threshold" in err, (out, err)
+    assert not list((tmp_path / "naf3").glob("*.ply"))
+
+
+def test_mesh_threshold_on_a_surface_run_is_said_unused(files, tmp_path, capsys):
+    assert _cli(["mesh", str(files["kneas"]), "-o", str(tmp_path / "m"), "--resolution", "24", "--threshold", "0.3"]) == 0
+    assert "--threshold (for methods without them" in " ".join(capsys.readouterr().out.split())
 
 
 def test_mesh_user_errors(files, tmp_path, capsys):

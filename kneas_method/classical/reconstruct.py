@@ -33,14 +33,17 @@ def algorithm_settings(algorithm: str, options: ReconstructionOptions, n_views: 
     o = options
     if algorithm == "fdk":
         return {"filter": o.filter}
-    settings = {"iterations": o.iterations or DEFAULT_ITERATIONS[algorithm], "backprojector": o.backprojector}
+    def given(value, default):  # 0 is a value the algorithm refuses, not "the default"
+        return default if value is None else value
+
+    settings = {"iterations": given(o.iterations, DEFAULT_ITERATIONS[algorithm]), "backprojector": o.backprojector}
     if algorithm == "cgls":
         return settings
-    settings["relaxation"] = o.relaxation or DEFAULT_RELAXATION[algorithm]
+    settings["relaxation"] = given(o.relaxation, DEFAULT_RELAXATION[algorithm])
     if algorithm in ("sart", "os-sart"):
         settings["positivity"] = o.positivity
     if algorithm == "os-sart":
-        settings["subsets"] = o.subsets or min(DEFAULT_SUBSETS, n_views)
+        settings["subsets"] = given(o.subsets, min(DEFAULT_SUBSETS, n_views))
     if algorithm == "asd-pocs":
         settings.update(subsets=o.subsets, tv_steps=o.tv_steps, tv_alpha=o.tv_alpha)
     return settings

@@ -107,11 +107,14 @@ def _mesh(args) -> int:
         dropped = f", dropped {m.dropped_components} fragment(s) / {m.dropped_triangles} triangles" if m.dropped_components else ""
         note = f" ({m.note})" if m.note else ""
         _say(f"  {m.name}: {m.vertices} vertices, {m.triangles} triangles, "
-                      f"{'watertight' if m.watertight else 'not watertight'} [{m.watertight_check}]{dropped}{note} -> {m.path}")
+                      f"{'watertight' if m.watertight else 'not watertight'} (checked by: {m.watertight_check}){dropped}{note} -> {m.path}")
     info = res.to_dict()
     info.update(method=run.config.method, scene=run.scene.name, checkpoint=str(run.checkpoint_path) if run.checkpoint_path else None,
                 units="vertices in mm, scene frame", seconds=round(time.perf_counter() - t0, 2))
     write_json(out / "meshes.json", info)
+    if all(m.path is None for m in res.meshes):
+        raise KneasError("no mesh was written: no surface crosses the level" + ("s" if len(res.meshes) > 1 else "")
+                         + (" (see the line above); choose a --threshold inside the attenuation's range" if res.thresholds else ""))
     return 0
 
 
@@ -148,6 +151,10 @@ def main(argv=None) -> None:
 
     def body() -> int:
         args = _parser().parse_args(argv)
+        if args.chunk < 1:
+            raise KneasError(f"--chunk must be at least 1 point per query, got {args.chunk}; leave it out for 65536")
+        if args.command == "figures" and args.views < 0:
+            raise KneasError(f"--views must be 0 (all) or more, got {args.views}")
         return {"mesh": _mesh, "volume": _volume, "figures": _figures}[args.command](args)
 
     run_cli(body)

@@ -81,10 +81,14 @@ def parse_args(argv: Sequence[str]):
             argv.insert(0, start.method)
         elif resume is not None and argv[0] in defaults and argv[0] != start.method:
             raise ConfigError(f"--resume {resume} is a {start.method} run; drop the method name {argv[0]!r}")
+        elif argv[0] in defaults and argv[0] != start.method:
+            raise ConfigError(f"--config {config_file} holds {start.method} settings, and they would not apply to {argv[0]}; "
+                              f"drop the method name {argv[0]!r} (or give {start.method}), or drop --config to train "
+                              f"{argv[0]} with its defaults and --scene/--views/--seed of your choice")
     config = tyro_cli(defaults, descriptions, argv, prog="kneas-train", what="method",
                       description="Train a kneas method (subcommand = registered method). Two more forms: "
-                                  "kneas-train --config FILE [METHOD] [options] starts from a saved config.json (a run's, "
-                                  "or your own); kneas-train --resume RUN_DIR continues an interrupted run.")
+                                  "kneas-train --config FILE [options] starts from a saved config.json (a run's, "
+                                  "or your own; its method is the run's); kneas-train --resume RUN_DIR continues an interrupted run.")
     if resume is not None:
         config = resume_config(resume, config)
     return config

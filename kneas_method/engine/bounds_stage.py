@@ -212,8 +212,9 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     if config.bounds is not None:
         b = load_bounds(config.bounds)
         if K is not None and b.K != K:
-            raise ConfigError(f"--bounds {config.bounds} has {b.K} materials but the run asks for K = {K}; "
-                              f"drop --num-materials or use --num-materials {b.K}")
+            raise ConfigError(f"--bounds {config.bounds} has {b.K} materials but this {config.method} run trains K = {K}; "
+                              f"give a bounds file with {K} materials, or --num-materials {b.K} (a K-material method such as "
+                              "k-neas; without --num-materials it takes K from the file)")
         say(f"bounds: from {config.bounds} (K = {b.K})")
         return BoundsResult(list(b.alphas), list(b.betas), b.K, f"file {config.bounds}")
     m = config.model

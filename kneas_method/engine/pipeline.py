@@ -18,12 +18,14 @@ pipeline continues (bounds from ``bounds.json``, training from the newest checkp
 
 from __future__ import annotations
 
+import shutil
 import time
 from pathlib import Path
 
 import torch
 
 from ..console import say
+from ..errors import ConfigError
 from ..data.truncation import fitting_scene
 from . import report
 from .loading import load_scene, resolve_device
@@ -48,6 +50,25 @@ def train(config) -> int:
         run_dir = create_run_dir(config.output_dir, scene.name, config.method)
         save_run_config(run_dir, config)
         say(f"run folder: {run_dir}")
-    fitting = fitting_scene(scene, say=say)
-    say(f"device: {device}; torch threads: {torch.get_num_threads()}")
-    return config.setup(scene=scene, fitting=fitting, run_dir=run_dir, device=device, started=started).run()
+    try:
+        fitting = fitting_scene(scene, say=say)
+        say(f"device: {device}; torch threads: {torch.get_num_threads()}")
+        return config.setup(scene=scene, fitting=fitting, run_dir=run_dir, device=device, started=started).run()
+    except ConfigError:
+        if not config.resume and _holds_no_work(run_dir):  # a mistake in the settings: no folder left that resumes into it
+            shutil.rmtree(run_dir, ignore_errors=True)
+            for parent in (run_dir.parent, run_dir.parent.parent):  # <method>/ and <scene>/, where nothing else is in them
+                try:
+                    parent.rmdir()
+                except OSError:
+                    break
+        raise
+
+
+def _holds_no_work(run_dir: Path) -> bool:
+    """True when the fresh ``run_dir`` holds only its ``config.json`` and empty folders (a settings
+    error found before anything was computed): nothing there is worth keeping."""
+    for path in run_dir.rglob("*"):
+        if path.is_file() and path != run_dir / "config.json":
+            return False
+    return True

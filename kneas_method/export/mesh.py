@@ -407,6 +407,9 @@ def export_meshes(
     jobs = []  # (name, field, level, inside_negative, source)
     layers: list[int] = []
     if kind == "sdf":
+        if thresholds:
+            result.notes.append(f"{run.config.method} has signed distances: its surfaces are their zero level sets, so "
+                                "--threshold (for methods without them: naf and the classical ones) was not used")
         K = fields.shape[-1]
         names = _material_names(run, K)
         layers = outer_layers_of_run(run, chunk=chunk) if K > 1 else []
@@ -446,8 +449,11 @@ def export_meshes(
         result.extractor = result.extractor or extractor
         stem = _slug(name)
         if mesh is None or len(mesh.triangles) == 0:
+            span = ("" if inside_negative else
+                    f": the attenuation spans {float(f.min()):.4g} to {float(f.max()):.4g} (data units)")
             result.meshes.append(MeshInfo(name, None, 0, 0, False, 0, 0, 0, source, level,
-                                          note="no surface in the volume (the field never crosses the level); no file written"))
+                                          note=f"no surface in the volume (the field never crosses the level{span}); no file written",
+                                          in_combined=False))
             continue
         comps, dropped, dropped_tri = drop_fragments(mesh, min_fragment)
         mesh.paint_uniform_color(colors[i])
@@ -468,7 +474,7 @@ def export_meshes(
         result.combined = MeshInfo("combined", path, len(combined.vertices), len(combined.triangles), tight,
                                    sum(m.components - m.dropped_components for m in parts), 0, 0,
                                    "all meshes" + (" but the outer partial-volume layer" if layers else "") + ", coloured by material",
-                                   watertight_check="every part watertight")
+                                   watertight_check="watertight when every part is")
     else:
         result.notes.append("no surface found in the volume, so no file was written")
     return result
