@@ -24,6 +24,10 @@ CASES = [
     ("eval", ["{tmp}/nowhere"], ["does not exist"]),
     ("eval", ["{tmp}"], ["has no config.json", "not a kneas run folder"]),
     ("eval", ["--scnee", "foot"], ["unrecognized arguments: --scnee", "did you mean --scene"]),
+    ("eval", ["{tmp}", "--figure-views", "-2"], ["--figure-views must be 0 (none) or more, got -2"]),
+    ("eval", ["--checkpoint", "{tmp}/nope.ckpt"], ["--checkpoint", "nope.ckpt does not exist"]),
+    ("eval", ["{tmp}/cli.log"], ["cli.log is a file, not a run folder or a checkpoint"]),
+    ("export", ["figures", "{tmp}/cli.log"], ["cli.log is a file, not a run folder or a checkpoint"]),
     ("export", ["mesk", "run"], ["invalid choice: 'mesk'", "did you mean mesh"]),
     ("export", ["mesh", "run", "--resolutoin", "3"], ["--resolutoin", "did you mean --resolution"]),
     ("export", ["mesh", "run", "--chunk", "0"], ["--chunk must be at least 1", "got 0"]),
@@ -49,6 +53,7 @@ CASES = [
 def test_mistakes_are_one_line(module, argv, words, tmp_path, capsys):
     cli = importlib.import_module(f"kneas_method.cli.{module}")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    (tmp_path / "cli.log").write_text("a log, not a run\n")
     with pytest.raises(SystemExit) as exc:
         cli.main(argv)
     err = capsys.readouterr().err.strip()

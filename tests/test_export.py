@@ -1,5 +1,6 @@
 """Run loading and `kneas-export` (mesh, volume, figures) on hand-written tiny run folders."""
 
+import dataclasses
 import json
 import shutil
 
@@ -369,3 +370,21 @@ def test_figures_export(files, capsys):
     names = sorted(p.name for p in out.glob("*.png"))
     assert names == ["labels.png", "projection-000.png", "projection-002.png", "slices.png", "weights.png"]
     assert all((out / n).stat().st_size > 1000 for n in names)
+
+
+def test_unfinished_checkpoints_are_named(files):
+    from kneas_method.engine.loading import unfinished_notes
+
+    config = load_run(files["kneas"]).config
+    run_dir = files["kneas"]
+    assert unfinished_notes({"step": 7}, config, run_dir) == []  # written outside kneas-train
+    mid = {"step": 700, "extra": {"stage": "model", "complete": False, "total_steps": 2000}}
+    (note,) = unfinished_notes(mid, config, run_dir)
+    assert "step 700 of 2000" in note and f"kneas-train --resume {run_dir}" in note
+    prior = {"step": 50, "extra": {"stage": "prior", "complete": True, "total_steps": 50}}
+    assert "prior model" in unfinished_notes(prior, config, run_dir)[0]
+    trained = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "correction": None}}
+    with_passes = dataclasses.replace(config, trainer=dataclasses.replace(config.trainer, correction_passes=12))
+    assert "12 correction passes" in unfinished_notes(trained, with_passes, run_dir)[0]
+    done = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "correction": []}}
+    assert unfinished_notes(done, with_passes, run_dir) == []

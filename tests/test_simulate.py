@@ -243,6 +243,9 @@ def test_resolve_scene_file_public_and_errors(tmp_path):
         resolve_scene("knee", data_dir=data)
     with pytest.raises(SceneError, match="neither an existing file"):
         resolve_scene(str(tmp_path / "nope.pickle"), data_dir=data)
+    (data / "jaw_50.pickle").write_bytes(b"not a pickle")  # a damaged download that shadows the built-in jaw
+    with pytest.raises(SceneError, match=r"jaw_50\.pickle: .*not a readable scene pickle.*stands in for the built-in 'jaw': remove it"):
+        resolve_scene("jaw", data_dir=data, cache_dir=tmp_path / "cache")
 
 
 def test_builtin_scene_cached_and_regenerated_on_config_change(tmp_path, monkeypatch):

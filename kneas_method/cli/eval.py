@@ -96,6 +96,10 @@ def main(argv=None) -> None:
         target = args.checkpoint or args.run
         if target is None:
             raise KneasError("give a run folder (kneas-eval RUN_DIR) or a checkpoint (--checkpoint FILE)")
+        if args.figure_views < 0:
+            raise KneasError(f"--figure-views must be 0 (none) or more, got {args.figure_views}")
+        if args.checkpoint and not Path(args.checkpoint).exists():
+            raise KneasError(f"--checkpoint {args.checkpoint} does not exist; give a .ckpt file of the run (RUN_DIR/checkpoints/)")
         if args.checkpoint and args.run and Path(args.run).resolve() != Path(args.checkpoint).resolve().parent.parent \
                 and Path(args.run).resolve() != Path(args.checkpoint).resolve().parent:
             raise KneasError(f"--checkpoint {args.checkpoint} is not inside run {args.run}; give only one of them")

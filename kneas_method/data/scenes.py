@@ -106,7 +106,11 @@ def resolve_scene(
         return scene
     public = Path(data_dir) / f"{spec}_50.pickle"
     if public.is_file():
-        scene = load_naf(public, name=spec)
+        try:
+            scene = load_naf(public, name=spec)
+        except SceneError as exc:
+            shadow = f"; it stands in for the built-in {spec!r}: remove it to use that" if spec in builtin_names() else ""
+            raise SceneError(f"{public}: {exc}{shadow}") from None
         scene.source = f"public benchmark {public}"
         return scene
     return builtin_scene(spec, cache_dir=cache_dir, progress=progress)

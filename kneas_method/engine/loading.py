@@ -313,6 +313,9 @@ def _run_dir_of(path: Path) -> tuple[Path, Optional[Path]]:
     if path.is_file():
         parent = path.parent
         run = parent.parent if parent.name == "checkpoints" and not (parent / "config.json").is_file() else parent
+        if path.suffix != ".ckpt" and not (run / "config.json").is_file():
+            raise KneasError(f"{path} is a file, not a run folder or a checkpoint (.ckpt); give the folder kneas-train "
+                             "wrote (DIR/<scene>/<method>/<timestamp>) or a checkpoint in it")
         return run, path
     raise KneasError(f"{path} does not exist; give a run folder (DIR/<scene>/<method>/<timestamp>) or a checkpoint file")
 
@@ -465,4 +468,27 @@ def load_run(
                               "the run folder mixes files of different runs") from None
     model.to(device).eval()
     step = state.get("step")
+    notes += unfinished_notes(state, config, run_dir)
     return LoadedRun(config, model, None, sc, run_dir, Path(ckpt_path), int(step) if step is not None else None, notes)
+
+
+def unfinished_notes(state: dict, config, run_dir: Path) -> list[str]:
+    """What a checkpoint lacks of a finished run (``state["extra"]``): a model stopped part-way
+    through training, or one trained without the correction passes its config asks for."""
+    extra = state.get("extra") or {}
+    if not extra:  # a checkpoint written outside kneas-train: nothing to say
+        return []
+    step, total = state.get("step"), extra.get("total_steps")
+    if extra.get("stage") == "prior":
+        return [f"this checkpoint is the bounds' prior model (step {step}), not the run's own; finish the run with "
+                f"kneas-train --resume {run_dir}"]
+    if extra.get("complete") is False:
+        return [f"training stopped at step {step} of {total}: these figures are an unfinished model's; finish it with "
+                f"kneas-train --resume {run_dir}"]
+    from ..model import field_has_surfaces
+
+    passes = config.trainer.correction_passes
+    if passes and extra.get("correction") is None and field_has_surfaces(config.model):
+        return [f"the {passes} correction passes after training were not run (the run stopped before them); "
+                f"finish it with kneas-train --resume {run_dir}"]
+    return []

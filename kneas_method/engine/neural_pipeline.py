@@ -114,6 +114,7 @@ class NeuralPipeline:
         run_dir, scene, device = self.run_dir, self.scene, self.device
         fit = self.fitting.scene  # the views are fitted on its box; the model is scored on the scene's
         tb = tensorboard_writer(run_dir)
+        stage = "while the bounds were estimated"
         try:
             bounds = self.bounds()
             config = self.config
@@ -123,13 +124,14 @@ class NeuralPipeline:
                     model = dataclasses.replace(model, first_label_threshold=float(bounds.details["first_label_threshold"]))
                 config = dataclasses.replace(config, num_materials=bounds.K, model=model)
                 save_run_config(run_dir, config)
+            stage = "before training (the warm start)"
             warm = self.warm_start()
             trainer = train_stage(config, fit, run_dir, epochs=config.trainer.epochs, device=device,
                                   bounds=None if bounds is None else (bounds.alphas, bounds.betas), label="model", tb=tb, warm=warm)
         except StageInterrupted as exc:
             return _interrupted(run_dir, f"[yellow]interrupted at step {exc.step}[/]: checkpoint {exc.checkpoint or 'no checkpoint (none written yet)'}")
         except KeyboardInterrupt:
-            return _interrupted(run_dir, "[yellow]interrupted[/] outside a training loop")
+            return _interrupted(run_dir, f"[yellow]interrupted[/] {stage}")
         finally:
             if tb is not None:
                 tb.flush()
