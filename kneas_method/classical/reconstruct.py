@@ -28,22 +28,24 @@ class Reconstruction:
     settings: dict
 
 
+def _given(value, default):
+    """``value``, or ``default`` where it is None (0 is a value the algorithm refuses, not "the default")."""
+    return default if value is None else value
+
+
 def algorithm_settings(algorithm: str, options: ReconstructionOptions, n_views: int) -> dict:
     """The settings ``algorithm`` runs with (``options`` with the defaults filled), JSON-able."""
     o = options
     if algorithm == "fdk":
         return {"filter": o.filter}
-    def given(value, default):  # 0 is a value the algorithm refuses, not "the default"
-        return default if value is None else value
-
-    settings = {"iterations": given(o.iterations, DEFAULT_ITERATIONS[algorithm]), "backprojector": o.backprojector}
+    settings = {"iterations": _given(o.iterations, DEFAULT_ITERATIONS[algorithm]), "backprojector": o.backprojector}
     if algorithm == "cgls":
         return settings
-    settings["relaxation"] = given(o.relaxation, DEFAULT_RELAXATION[algorithm])
+    settings["relaxation"] = _given(o.relaxation, DEFAULT_RELAXATION[algorithm])
     if algorithm in ("sart", "os-sart"):
         settings["positivity"] = o.positivity
     if algorithm == "os-sart":
-        settings["subsets"] = given(o.subsets, min(DEFAULT_SUBSETS, n_views))
+        settings["subsets"] = _given(o.subsets, min(DEFAULT_SUBSETS, n_views))
     if algorithm == "asd-pocs":
         settings.update(subsets=o.subsets, tv_steps=o.tv_steps, tv_alpha=o.tv_alpha)
     return settings
