@@ -152,8 +152,12 @@ def scene_from_spec(spec: str):
     if spec.startswith("heldout:"):
         return heldout_scene(spec.split(":", 1)[1])
     from kneas_method.data.scenes import resolve_scene
+    from kneas_method.errors import KneasError
 
-    return resolve_scene(spec)
+    try:
+        return resolve_scene(spec, flag="--scenes")
+    except KneasError as exc:  # a benchmark's mistake is one line too, as the commands'
+        raise SystemExit(f"error: {exc}") from None
 
 
 def _offset_detector_scan(phantom, cfg, name: str, columns: int, past_centre: int):

@@ -18,9 +18,17 @@ from kneas_method.errors import KneasError
 FAKE_TRAIN = r'''
 import json, os, sys, pathlib
 args = sys.argv[1:]
-method = args[0]
 def opt(name):
     return args[args.index(name) + 1] if name in args else None
+if args[0] == "--resume":  # an interrupted run finished in its own folder
+    if os.environ.get("FAKE_LOG"):
+        with open(os.environ["FAKE_LOG"], "a") as f:
+            f.write(json.dumps({"args": args}) + "\n")
+    run = pathlib.Path(args[1])
+    (run / "metrics.json").write_text(json.dumps({"psnr2d": 1.0, "ssim2d": 0.9, "psnr3d": 1.0, "ssim3d": 0.8, "psnr3d_ls": 1.0,
+        "parameters": 1, "steps": 2, "wall_time_s": 0.5, "preset": "tiny", "scene_source": "built-in phantom foot"}))
+    sys.exit(0)
+method = args[0]
 scene, out, seed = opt("--scene"), pathlib.Path(opt("--output-dir")), int(opt("--seed"))
 k = int(opt("--num-materials")) if opt("--num-materials") else {"neas-1m": 1, "neas-2m": 2}.get(method)
 if os.environ.get("FAKE_LOG"):
@@ -345,6 +353,32 @@ def test_resume_skips_complete_cells_and_records_failures(tmp_path, fake_prefix,
     assert len(_calls(log)) == 1
 
 
+def test_an_interrupted_cell_resumes_its_run(tmp_path, fake_prefix, monkeypatch):
+    """A cell stopped after a checkpoint continues that run (kneas-train --resume), not a new one."""
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    out = tmp_path / "bench"
+    cell = next(c for c in grid.table1(["foot"], (0,), "tiny", ks=(2,)) if c.method == "k-neas")
+    stopped = cell_dir(out, cell) / "foot" / "k-neas" / "20240101-000000"
+    (stopped / "checkpoints").mkdir(parents=True)
+    (stopped / "config.json").write_text("{}")
+    (stopped / "checkpoints" / "step-00000020.ckpt").write_bytes(b"x")
+    other = cell_dir(out, cell) / "foot" / "neas-1m-prior" / "abc"  # a helper run's folder is not the cell's run
+    other.mkdir(parents=True)
+    result = run_cell(cell, out, fake_prefix)
+    (call,) = _calls(log)
+    assert call["args"] == ["--resume", str(stopped)]
+    assert result.status == "done" and result.run_dir == str(stopped)
+    assert json.loads((cell_dir(out, cell) / "cell.json").read_text())["resumed"] == str(stopped)
+    # without a checkpoint there is nothing to resume: a fresh run
+    fresh = next(c for c in grid.table1(["foot"], (1,), "tiny", ks=(2,)) if c.method == "k-neas")
+    bare = cell_dir(out, fresh) / "foot" / "k-neas" / "20231231-235959"
+    bare.mkdir(parents=True)
+    (bare / "config.json").write_text("{}")
+    assert run_cell(fresh, out, fake_prefix).status == "done"
+    assert _calls(log)[-1]["args"][0] == "k-neas"
+
+
 def test_local_workers_get_one_gpu_each_or_share_the_cpus(tmp_path, fake_prefix, monkeypatch):
     log = tmp_path / "calls.jsonl"
     monkeypatch.setenv("FAKE_LOG", str(log))
@@ -444,7 +478,11 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
                       (["table1", "--references", "naf"], "--references"),
                       (["table1", "--no-fdk"], "unknown option --no-fdk"),
                       (["table1", "--train-args=--seed 3"], "must not contain --seed"),
-                      (["table1", "--workers", "2", "--backend", "ray"], "--workers is for the local backend")):
+                      (["table1", "--workers", "2", "--backend", "ray"], "--workers is for the local backend"),
+                      # refused in a dry run too: every cell would fail on them
+                      (["table1", "--scenes", "nosuch", "--dry-run"], "--scenes 'nosuch' is neither an existing file"),
+                      (["table1", "--scenes", "foot", "--views", "0", "--dry-run"], "view counts must be whole numbers >= 1, got 0"),
+                      (["table1", "--workers", "0", "--dry-run"], "--workers must be at least 1")):
         with pytest.raises(SystemExit) as exc:
             cli.main([*argv, "--output-dir", str(tmp_path / "e")])
         assert exc.value.code == 2

@@ -7,7 +7,9 @@ Layout of a cell folder::
     <scene>/<method>/<timestamp>/      the ordinary kneas-train run folder (metrics.json, config.json, ...)
 
 A cell is *complete* when a ``metrics.json`` exists under its folder; complete
-cells are never run again, so a rerun continues where the last one stopped.
+cells are never run again, so a rerun continues where the last one stopped. A cell
+whose run was stopped after its first checkpoint (Ctrl-C, a killed worker) is resumed
+(``kneas-train --resume RUN_DIR``), not trained again.
 """
 
 from __future__ import annotations
@@ -47,6 +49,14 @@ def find_metrics(folder: str | Path, method: Optional[str] = None) -> Optional[P
     if not found:
         return None
     return max(found, key=lambda p: p.stat().st_mtime)
+
+
+def unfinished_run(folder: str | Path, method: str) -> Optional[Path]:
+    """The newest ``method`` run under ``folder/<scene>/<method>/<run>/`` that has a checkpoint and
+    no ``metrics.json`` (stopped part-way, resumable), or None."""
+    runs = [p.parent for p in Path(folder).glob(f"*/{safe_name(method)}/*/config.json")
+            if not (p.parent / "metrics.json").is_file() and any((p.parent / "checkpoints").glob("*.ckpt"))]
+    return max(runs, key=lambda p: p.stat().st_mtime) if runs else None
 
 
 def is_complete(output_dir: str | Path, cell: Cell) -> bool:
@@ -103,16 +113,19 @@ def run_cell(cell: Cell, output_dir: str | Path, prefix: Sequence[str] = DEFAULT
     if done is not None:
         return CellResult(cell.id, "skipped", run_dir=str(done.parent))
     folder.mkdir(parents=True, exist_ok=True)
-    cmd = cell.command(folder, prefix)
+    stopped = unfinished_run(folder, cell.method)
+    cmd = [*prefix, "--resume", str(stopped)] if stopped is not None else cell.command(folder, prefix)
     record = {"cell": cell.to_dict(), "command": cmd, "status": "running", "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
               "host": os.uname().nodename, "cuda_visible_devices": (env or os.environ).get("CUDA_VISIBLE_DEVICES")}
+    if stopped is not None:
+        record["resumed"] = str(stopped)
     write_json(folder / "cell.json", record)
     log = folder / "train.log"
     t0 = time.monotonic()
     rc: Optional[int] = None
     error: Optional[str] = None
     try:
-        with open(log, "w", encoding="utf-8") as handle:
+        with open(log, "a" if stopped is not None else "w", encoding="utf-8") as handle:
             handle.write("$ " + " ".join(cmd) + "\n")
             handle.flush()
             proc = subprocess.Popen(cmd, stdout=handle, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

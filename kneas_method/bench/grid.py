@@ -126,13 +126,21 @@ def seeds_from_count(n: int) -> tuple[int, ...]:
     return tuple(range(n))
 
 
-def _check_common(scenes: Sequence[str], preset: str) -> None:
+def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[int]] = (None,)) -> None:
+    """Refuse, before any cell runs (and in a dry run), what every cell would fail on: no or
+    unknown scenes (neither a file nor a built-in name), an unknown preset, a view count below 1."""
+    from ..data.scenes import check_scene_spec
     from ..methods import PRESETS
 
     if not scenes:
         raise ConfigError("no scenes given; pass e.g. --scenes foot jaw")
+    for scene in scenes:
+        check_scene_spec(scene, "--scenes")
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    bad = [v for v in views if v is not None and not (isinstance(v, int) and v >= 1)]
+    if bad:
+        raise ConfigError(f"view counts must be whole numbers >= 1, got {', '.join(map(str, bad))}")
 
 
 def is_reference(method: str) -> bool:
@@ -171,7 +179,7 @@ def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: S
            extra: Sequence[str] = ()) -> list[Cell]:
     """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``),
     plus one cell per classical reference in ``references`` (empty: none)."""
-    _check_common(scenes, preset)
+    _check_common(scenes, preset, [views])
     extra = tuple(extra)
     cells = []
     for s in scenes:
@@ -190,9 +198,7 @@ def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1
                 views: Sequence[int] = VIEWS, k: int = 2, references: Sequence[str] = REFERENCE_METHODS,
                 extra: Sequence[str] = ()) -> list[Cell]:
     """Table 2: views x {neas-2m, k-neas with K = 2} per scene, plus each classical reference per scene and view count."""
-    _check_common(scenes, preset)
-    if any(v < 1 for v in views):
-        raise ConfigError(f"view counts must be >= 1, got {list(views)}")
+    _check_common(scenes, preset, views)
     extra = tuple(extra)
     cells = [Cell(s, m, k, v, seed, preset, extra) for s in scenes for v in views for m in ("neas-2m", "k-neas") for seed in seeds]
     cells += _reference_cells(scenes, views, references, preset, extra)
@@ -203,7 +209,7 @@ def ablation(scenes: Sequence[str] = ("foot",), seeds: Sequence[int] = (0,), pre
              methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
              extra: Sequence[str] = ()) -> list[Cell]:
     """Table 3: the four-way ablation with K = 2, plus one cell per classical reference and scene."""
-    _check_common(scenes, preset)
+    _check_common(scenes, preset, [views])
     extra = tuple(extra)
     # a classical method among ``methods`` is a reference (one run, no K), not an ablation variant
     cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods if not is_reference(m) for seed in seeds]
@@ -219,7 +225,7 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
     neas-2m); ``None`` in ``ks`` means the method's default K. The classical references
     (:data:`REFERENCE_METHODS`) are deterministic and run once (the first seed).
     """
-    _check_common(scenes, preset)
+    _check_common(scenes, preset, views)
     if not methods:
         raise ConfigError("no methods given; pass e.g. --methods k-neas neas-2m fdk")
     extra = tuple(extra)

@@ -196,6 +196,8 @@ def run(args: _Common) -> int:
     from ..bench.cells import is_complete
     from ..engine.run_dir import check_writable
 
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1 (runs at a time), got {args.workers}")
     cells = expand(args)
     layout = LAYOUT[type(args)]
     output_dir = Path(args.output_dir)
