@@ -488,3 +488,12 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
         assert exc.value.code == 2
         err = capsys.readouterr().err
         assert msg in err and err.count("\n") == 1
+
+
+def test_table_note_says_when_there_is_one_seed():
+    from kneas_method.bench.aggregate import _common_notes
+
+    one = " ".join(_common_notes(grid.table1(["foot"], (0,), "tiny", ks=(2,))))
+    assert "one seed (0): no spread" in one and "std" not in one
+    three = " ".join(_common_notes(grid.table1(["foot"], (0, 1, 2), "tiny", ks=(2,))))
+    assert "mean ± sample std over seeds 0, 1, 2" in three

@@ -281,7 +281,9 @@ def _references(cells: Sequence[Cell]) -> list[str]:
 def _common_notes(cells: Sequence[Cell]) -> list[str]:
     seeds = sorted({c.seed for c in cells if not is_reference(c.method)})
     presets = sorted({c.preset for c in cells})
-    note = f"mean ± sample std over seeds {', '.join(map(str, seeds))}; preset {', '.join(presets)}; bold = best of our learned models"
+    spread = (f"mean ± sample std over seeds {', '.join(map(str, seeds))}" if len(seeds) > 1
+              else f"one seed ({seeds[0]}): no spread" if seeds else "classical references only")
+    note = f"{spread}; preset {', '.join(presets)}; bold = best of our learned models"
     refs = _references(cells)
     if refs:
         labels = ", ".join(m.upper() for m in refs)
