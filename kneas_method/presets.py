@@ -40,8 +40,10 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                     "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none"},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
-    # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.6
-    # (finest resolution ~168 for the built-in 128^3 volumes), 128 + 32 rays x 64
+    # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.75
+    # (finest resolution 263 across the volume box: a cell of about half a voxel on the built-in
+    # 128^3 volumes; scale 1.6, finest 168, until the 72nd stop: abdomen 42.24 -> 43.56 dB, jaw
+    # 41.55 -> 41.91; 1.9 and 2.0 were worse, docs/experiments.md), 128 + 32 rays x 64
     # samples, the exact eikonal on every sample with lambda 1e-5 (the paper's 0.01
     # dominates the ~1e-5 intensity loss of NAF-convention data in a short run), s
     # starting at 100, 64 evenly spaced evaluation samples in 256-ray chunks, a
@@ -77,7 +79,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
     # a step at K = 7 is 22 % cheaper; abdomen +0.16 dB, head-256 +0.18, chest 11:41 -> 9:54;
     # 16 wide cost head-256 1.96 dB (docs/experiments.md).
     "cpu": {
-        "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.6},
+        "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.75},
         "attenuation": {"hidden_dim": 32},
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "s_init": 100.0, "lambda_eikonal": 1e-5,
                   "occupancy_grid": True, "quadrature": "bins"},

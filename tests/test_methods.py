@@ -1,4 +1,5 @@
 import dataclasses
+import math
 import json
 
 import pytest
@@ -115,6 +116,26 @@ def test_cpu_preset_narrows_the_attenuation_networks_and_older_runs_keep_their_w
     assert prior_config(k).model.attenuation_options == {"hidden_dim": 32}
     naf = presets.resolve(dataclasses.replace(registry.load("methods", "naf").config, method="naf", preset="cpu"))
     assert naf.model.attenuation_options == {} and config_from_dict(to_dict(naf), "config.json").model.attenuation_options == {}
+
+
+def test_cpu_preset_hash_grid_reaches_half_a_voxel_and_older_runs_keep_their_scale():
+    """The cpu preset's finest hash-grid level has about two cells per voxel of a 128^3 grid
+    (scale 1.75: 263 across the box; 1.6, 168, before the 72nd stop); the user's scale wins; a
+    config.json written with the old scale is read at it, so the run loads as it was trained."""
+    from kneas_method.engine.loading import config_from_dict
+    from kneas_method.fields.hash_grid import HashGridConfig
+
+    base = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas")
+    cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
+    grid = HashGridConfig(**cpu.model.encoding_options)
+    finest = math.ceil(grid.base_resolution * grid.per_level_scale ** (grid.num_levels - 1))
+    assert 2 * 128 <= finest <= 2 * 128 * 1.1
+    saved = to_dict(cpu)
+    assert config_from_dict(saved, "config.json").model.encoding_options["per_level_scale"] == 1.75
+    older = {**saved, "model": {**saved["model"], "encoding_options": {**saved["model"]["encoding_options"], "per_level_scale": 1.6}}}
+    assert config_from_dict(older, "config.json").model.encoding_options["per_level_scale"] == 1.6
+    told = dataclasses.replace(base, preset="cpu", model=dataclasses.replace(base.model, encoding_options={"per_level_scale": 1.5}))
+    assert presets.resolve(told).model.encoding_options["per_level_scale"] == 1.5
 
 
 def test_cpu_preset_skips_empty_space_unless_told_not_to():
