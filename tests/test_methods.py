@@ -1,5 +1,4 @@
 import dataclasses
-import math
 import json
 
 import pytest
@@ -123,12 +122,11 @@ def test_cpu_preset_hash_grid_reaches_half_a_voxel_and_older_runs_keep_their_sca
     (scale 1.75: 263 across the box; 1.6, 168, before the 72nd stop); the user's scale wins; a
     config.json written with the old scale is read at it, so the run loads as it was trained."""
     from kneas_method.engine.loading import config_from_dict
-    from kneas_method.fields.hash_grid import HashGridConfig
+    from kneas_method.fields.hash_grid import HashGridConfig, hash_grid_layout
 
     base = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas")
     cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
-    grid = HashGridConfig(**cpu.model.encoding_options)
-    finest = math.ceil(grid.base_resolution * grid.per_level_scale ** (grid.num_levels - 1))
+    finest = hash_grid_layout(HashGridConfig(**cpu.model.encoding_options)).resolutions[-1]
     assert 2 * 128 <= finest <= 2 * 128 * 1.1
     saved = to_dict(cpu)
     assert config_from_dict(saved, "config.json").model.encoding_options["per_level_scale"] == 1.75
