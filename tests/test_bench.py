@@ -482,6 +482,8 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
                       # refused in a dry run too: every cell would fail on them
                       (["table1", "--scenes", "nosuch", "--dry-run"], "--scenes 'nosuch' is neither an existing file"),
                       (["table1", "--scenes", "foot", "--views", "0", "--dry-run"], "view counts must be whole numbers >= 1, got 0"),
+                      (["views", "--scenes", "foot", "--views", "5", "60", "--dry-run"],
+                       "--views 60 is more than scene foot's 50 training views; choose counts from 1 to 50"),
                       (["table1", "--workers", "0", "--dry-run"], "--workers must be at least 1")):
         with pytest.raises(SystemExit) as exc:
             cli.main([*argv, "--output-dir", str(tmp_path / "e")])
@@ -497,3 +499,25 @@ def test_table_note_says_when_there_is_one_seed():
     assert "one seed (0): no spread" in one and "std" not in one
     three = " ".join(_common_notes(grid.table1(["foot"], (0, 1, 2), "tiny", ks=(2,))))
     assert "mean ± sample std over seeds 0, 1, 2" in three
+
+
+def test_view_counts_above_a_scenes_training_views_are_refused_before_any_cell(tmp_path, monkeypatch):
+    """A pickle's own count (here 4) is read; a built-in name's is its simulation's, without simulating it;
+    a public benchmark pickle in ./data stands in for the built-in name, as kneas-train's --scene does."""
+    from conftest import foot_scene_file
+
+    from kneas_method.data.scenes import training_view_count
+
+    path = foot_scene_file(tmp_path)
+    assert training_view_count(path) == 4
+    assert training_view_count("jaw") == 50
+    cells = grid.grid([str(path)], ["k-neas"], views=(2, 4), seeds=(0,), preset="tiny")
+    assert sorted(c.views for c in cells) == [2, 4]
+    with pytest.raises(KneasError, match=r"--views 5 is more than scene .*foot_tiny.pickle's 4 training views; choose counts from 1 to 4"):
+        grid.grid([str(path)], ["k-neas"], views=(2, 5), seeds=(0,), preset="tiny")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "jaw_50.pickle").write_bytes(path.read_bytes())
+    assert training_view_count("jaw") == 4
+    with pytest.raises(KneasError, match="--views 10 is more than scene jaw's 4 training views"):
+        grid.views_table(["jaw"], (0,), "tiny", views=(5, 10))

@@ -128,7 +128,8 @@ def seeds_from_count(n: int) -> tuple[int, ...]:
 
 def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[int]] = (None,)) -> None:
     """Refuse, before any cell runs (and in a dry run), what every cell would fail on: no or
-    unknown scenes (neither a file nor a built-in name), an unknown preset, a view count below 1."""
+    unknown scenes (neither a file nor a built-in name), an unknown preset, a view count below 1
+    or above a scene's training views."""
     from ..data.scenes import check_scene_spec
     from ..methods import PRESETS
 
@@ -138,9 +139,17 @@ def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[i
         check_scene_spec(scene, "--scenes")
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    bad = [v for v in views if v is not None and not (isinstance(v, int) and v >= 1)]
+    views = [v for v in views if v is not None]
+    bad = [v for v in views if not (isinstance(v, int) and v >= 1)]
     if bad:
         raise ConfigError(f"view counts must be whole numbers >= 1, got {', '.join(map(str, bad))}")
+    if views:  # a count above a scene's training views would fail in every cell that asks for it
+        from ..data.scenes import training_view_count
+
+        for scene in scenes:
+            total = training_view_count(scene)
+            if max(views) > total:
+                raise ConfigError(f"--views {max(views)} is more than scene {scene}'s {total} training views; choose counts from 1 to {total}")
 
 
 def is_reference(method: str) -> bool:

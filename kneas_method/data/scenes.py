@@ -16,6 +16,8 @@ import os
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
+
 from ..errors import SceneError
 from .naf import load_naf, save_naf
 from .scene import Scene
@@ -114,6 +116,31 @@ def resolve_scene(
         scene.source = f"public benchmark {public}"
         return scene
     return builtin_scene(spec, cache_dir=cache_dir, progress=progress)
+
+
+def training_view_count(spec, *, data_dir="data") -> int:
+    """The number of training views the scene :func:`resolve_scene` gives for ``spec`` has,
+    without simulating a built-in scene (its :class:`SimulationConfig`'s ``n_train``); a pickle
+    (a file, or a public benchmark in ``data_dir`` standing in for a built-in name) is read.
+
+    Raises:
+        SceneError: as :func:`check_scene_spec`, or the pickle's own refusal.
+    """
+    from .naf import safe_load_pickle
+
+    spec = str(spec)
+    check_scene_spec(spec)
+    path = Path(spec).expanduser()
+    if not path.is_file():
+        public = Path(data_dir) / f"{spec}_50.pickle"
+        if not public.is_file():
+            return int(SimulationConfig().n_train)
+        path = public
+    d = safe_load_pickle(path)
+    train = d.get("train") if isinstance(d, dict) else None
+    if not isinstance(train, dict) or "angles" not in train:
+        raise SceneError(f"{path.name} has no train.angles; a NAF scene needs train = {{'angles': [N], 'projections': [N, nV, nU]}}")
+    return int(np.asarray(train["angles"]).reshape(-1).size)
 
 
 def check_scene_spec(spec, flag: str = "--scene") -> None:
