@@ -78,6 +78,12 @@ def builtin_scene(
     return scene
 
 
+def public_benchmark_path(name: str, data_dir="data") -> Path:
+    """Where a public benchmark pickle for ``name`` is looked for (``data_dir/<name>_50.pickle``);
+    where it exists it stands in for the built-in scene of that name."""
+    return Path(data_dir) / f"{name}_50.pickle"
+
+
 def resolve_scene(
     spec: str,
     *,
@@ -106,7 +112,7 @@ def resolve_scene(
         scene = load_naf(path)
         scene.source = f"file {path}"
         return scene
-    public = Path(data_dir) / f"{spec}_50.pickle"
+    public = public_benchmark_path(spec, data_dir)
     if public.is_file():
         try:
             scene = load_naf(public, name=spec)
@@ -132,7 +138,7 @@ def training_view_count(spec, *, data_dir="data") -> int:
     check_scene_spec(spec)
     path = Path(spec).expanduser()
     if not path.is_file():
-        public = Path(data_dir) / f"{spec}_50.pickle"
+        public = public_benchmark_path(spec, data_dir)
         if not public.is_file():
             return int(SimulationConfig().n_train)
         path = public
