@@ -180,7 +180,9 @@ class TrainerConfig:
             minimises Stein's unbiased estimate of its squared error (SURE) under the volume's own
             noise, its autocovariance between neighbouring voxels estimated from the volume
             (``kneas_method.denoise``): none, a Gaussian, or an edge-preserving bilateral filter
-            (its SURE by Monte Carlo); then fits the model to it (``denoise_steps`` at
+            (its SURE by Monte Carlo), the noise estimate raised while the choice's projections
+            still fit the training views closer than their noise (the discrepancy principle);
+            then fits the model to it (``denoise_steps`` at
             ``denoise_lr``, a pass's points and curvature term, in the voxels the model fills).
             Where no filter lowers the estimate (a clean scan) the volume is left as it is.
             ``sure-gaussian``: the Gaussians alone (the earlier rule). ``none``: no

@@ -13,8 +13,9 @@ import torch
 from scipy import ndimage
 
 from conftest import run, run_dir_of, sphere_scene
-from kneas_method.denoise import (BILATERAL_TRUNCATE, SIGMAS, bilateral, correlated_noise, gaussian_blur, gaussian_taps,
-                                  monte_carlo_sure, noise_autocovariance, robust_variance, shifted_pairs, sure, sure_smoothing)
+from kneas_method.denoise import (BILATERAL_TRUNCATE, NOISE_SCALES, SIGMAS, bilateral, correlated_noise, discrepancy_smoothing,
+                                  gaussian_blur, gaussian_taps, monte_carlo_sure, noise_autocovariance, robust_variance,
+                                  shifted_pairs, sure, sure_smoothing)
 
 
 def _balls(n: int = 64) -> np.ndarray:
@@ -185,6 +186,36 @@ def test_sure_smoothing_leaves_a_clean_or_a_textured_volume_as_it_is():
     assert choice.filter == "none", choice.sure
 
 
+def test_discrepancy_raises_the_noise_estimate_while_the_choice_fits_the_data_closer_than_their_noise():
+    clean = _balls()
+    noise = _correlated_noise(clean.shape, 0.03, 0.7, seed=5)
+    noise[:, :32] *= 4  # half the volume four times noisier: the robust spread sees the quieter half
+    noisy = torch.as_tensor(clean + noise)
+    noise_variance = float((noise.astype(np.float64) ** 2).mean())
+    calls = []
+
+    def misfit(v):  # the data are the noisy volume itself (an identity projector), as a model that fitted their noise
+        calls.append(1)
+        return float(((v - noisy) ** 2).mean())
+
+    first, sure_choice = sure_smoothing(noisy)
+    smoothed, choice = discrepancy_smoothing(noisy, misfit, noise_variance)
+    error = lambda v: float(((v.numpy() - clean) ** 2).sum())
+    assert sure_choice.filter != "none" and choice.noise_scale > 1.0
+    assert error(smoothed) < 0.6 * error(first), (choice.misfit, error(smoothed), error(first))
+    ratios = [r for _, _, r in choice.misfit]
+    assert ratios[0] == pytest.approx(misfit(first) / noise_variance) and all(r < 1 for r in ratios[:-1])
+    assert [m for m, _, _ in choice.misfit] == list(NOISE_SCALES[: len(ratios)]) and choice.misfit[-1][1] == choice.label
+    assert choice.to_json()["misfit"][0]["noise_scale"] == 1.0
+    # where SURE's choice already reaches the data's noise, it stands
+    smoothed, choice = discrepancy_smoothing(noisy, misfit, 0.5 * misfit(first))
+    assert torch.equal(smoothed, first) and choice.noise_scale == 1.0 and len(choice.misfit) == 1
+    # a clean volume: SURE chooses none and the projections are not compared
+    calls.clear()
+    smoothed, choice = discrepancy_smoothing(torch.as_tensor(clean), misfit, noise_variance)
+    assert choice.filter == "none" and not calls and choice.misfit == []
+
+
 def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
     from kneas_method.data.naf import save_naf
     from kneas_method.data.simulate import SimulationConfig
@@ -202,6 +233,8 @@ def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
     metrics = json.loads((run_dir / "metrics.json").read_text())
     record = metrics["denoising"]
     assert record["filter"] in ("none", "gaussian", "bilateral") and record["noise_std"] > 0 and "none" in record["sure"]
+    assert record["noise_scale"] >= 1.0 and all(r["misfit_over_noise"] > 0 for r in record["misfit"])
+    assert (record["filter"] == "none") == (record["misfit"] == [])
     assert "denoise: " in out
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
     assert state["extra"]["denoising"] == record

@@ -78,31 +78,45 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     if t.denoise in ("sure", "sure-gaussian"):
         if passes[-1]["iterations"] > 0:  # the last pass's fit moved the field in its band
             volume = requery_band(model, scene.geometry, volume, grow(fitted, REQUERY_MARGIN))
-        trainer.denoising = denoise_stage(trainer, volume, config)
+        trainer.denoising = denoise_stage(trainer, volume, config, projections, projectors.get(1))
     trainer.correction = passes
     trainer.correction_time_s = time.perf_counter() - started
     trainer.save(complete=True)
     return passes
 
 
-def denoise_stage(trainer, volume: torch.Tensor, config) -> dict:
+def denoise_stage(trainer, volume: torch.Tensor, config, projections: torch.Tensor, projector) -> dict:
     """Smooth the corrected model's ``volume`` [nx, ny, nz] as far as SURE says its own noise
-    allows (``kneas_method.denoise``) and fit the model to the result (the passes' fit, in the
-    voxels that carry noise); nothing where no smoothing lowers the estimate. Returns
-    ``Denoising.to_json``."""
-    from ..denoise import BILATERALS, sure_smoothing
+    allows, raising its noise estimate while the smoothed volume still fits the training
+    ``projections`` [N, nV, nU] (through the passes' ``projector`` of the scene's grid) closer than
+    their noise (``kneas_method.denoise.discrepancy_smoothing``), and fit the model to the result
+    (the passes' fit, in the voxels that carry noise); nothing where no smoothing lowers the
+    estimate. Returns ``Denoising.to_json``."""
+    from ..correction import noise_variance
+    from ..denoise import BILATERALS, discrepancy_smoothing
 
     t = config.trainer
-    smoothed, choice = sure_smoothing(volume, bilaterals=BILATERALS if t.denoise == "sure" else ())
+
+    def misfit(v: torch.Tensor) -> float:
+        r = projections - projector.forward(v.clamp_min(0))
+        return float((r * r).mean())
+
+    data_noise = noise_variance(projections - projector.forward(volume))
+    smoothed, choice = discrepancy_smoothing(volume, misfit, data_noise, bilaterals=BILATERALS if t.denoise == "sure" else ())
+    if len(choice.misfit) > 1:
+        say("denoise: " + "; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise"
+                                    for m, label, r in choice.misfit[:-1])
+            + ": closer than the noise, so the volume holds more noise than estimated, and the estimate was raised")
     if choice.filter == "none":
         say(f"denoise: no smoothing lowers the estimated error (SURE; noise std {choice.noise_std:.3g}, "
             f"correlation with a neighbour {choice.neighbour_correlation:.2f}): the volume is left as it is")
         return choice.to_json()
     what = (f"a Gaussian of {choice.sigma:g} voxel" if choice.filter == "gaussian" else
             f"a bilateral filter of {choice.sigma:g} voxels and {choice.range_stds:g} noise std")
+    fits = f", its projections' misfit {choice.misfit[-1][2]:.3f} of the data's noise" if choice.misfit else ""
     say(f"denoise: {what} lowers the estimated squared error {choice.sure['none']:.4g} -> "
         f"{choice.sure[choice.label]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
-        f"{choice.neighbour_correlation:.2f}; {choice.seconds:.0f} s); fitting the model to it (--trainer.denoise none skips it)")
+        f"{choice.neighbour_correlation:.2f}{fits}; {choice.seconds:.0f} s); fitting the model to it (--trainer.denoise none skips it)")
     region = (volume != 0).cpu().numpy()
     trainer.fit_to_volume(smoothed.clamp_min(0).cpu().numpy(), region, int(t.denoise_steps), int(t.correction_points),
                           float(t.denoise_lr), curvature=float(t.correction_curvature),
