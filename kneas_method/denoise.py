@@ -245,8 +245,8 @@ class Denoising:
 
 @torch.no_grad()
 def sure_smoothing(volume: torch.Tensor, mask: Optional[torch.Tensor] = None, sigmas: Sequence[float] = SIGMAS,
-                   bilaterals: Sequence[tuple[float, float]] = BILATERALS, seed: int = 0, noise_scale: float = 1.0
-                   ) -> tuple[torch.Tensor, Denoising]:
+                   bilaterals: Sequence[tuple[float, float]] = BILATERALS, seed: int = 0, noise_scale: float = 1.0,
+                   autocovariance: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, Denoising]:
     """The smoothing of ``volume`` [nx, ny, nz] with the lowest SURE (module docstring) among none,
     a Gaussian of each of ``sigmas`` voxels (exact SURE) and the bilateral filter of each
     ``(sigma voxels, range in noise standard deviations)`` in ``bilaterals`` (SURE by Monte Carlo,
@@ -259,7 +259,7 @@ def sure_smoothing(volume: torch.Tensor, mask: Optional[torch.Tensor] = None, si
     volume = volume.float()
     mask = (volume != 0) if mask is None else mask.bool()
     region = int(mask.sum())
-    c = noise_autocovariance(volume, mask) * float(noise_scale)
+    c = (noise_autocovariance(volume, mask) if autocovariance is None else autocovariance) * float(noise_scale)
     c0 = float(c[1, 1, 1])
     face = [c[1 + k[0], 1 + k[1], 1 + k[2]] for k in OFFSETS if sum(map(abs, k)) == 1]
     rho = float(sum(face) / len(face) / c0) if c0 > 0 else 0.0
@@ -304,9 +304,12 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
     import time
 
     t0 = time.perf_counter()
+    volume = volume.float()
+    mask = (volume != 0) if mask is None else mask.bool()
+    c = noise_autocovariance(volume, mask)  # estimated once, raised for each scale
     tried = []
     for scale in scales:
-        smoothed, choice = sure_smoothing(volume, mask, sigmas, bilaterals, seed, noise_scale=scale)
+        smoothed, choice = sure_smoothing(volume, mask, sigmas, bilaterals, seed, noise_scale=scale, autocovariance=c)
         if choice.filter == "none" or data_noise <= 0:
             break
         ratio = float(misfit(smoothed)) / float(data_noise)
