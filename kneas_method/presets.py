@@ -37,7 +37,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 512, "num_air_rays": 128},
         "trainer": {"epochs": 1000, "prior_epochs": 1000, "lr": 1e-3, "lr_decay_at": 0.5, "eval_every": 100, "checkpoint_every": 100, "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none"},
+                    "warm_start": "none", "warm_start_steps": 0, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none", "time_budget": 0.0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
     # CPU preset (2 cores, torch hash grid): 6 levels, 2^16 entries, scale 1.75
@@ -85,7 +85,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": True, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 128, "num_air_rays": 32},
         "trainer": {"epochs": 80, "prior_epochs": 40, "lr": 1e-3, "lr_decay_at": 0.85, "eval_every": 16, "checkpoint_every": 4, "eval_chunk": 256, "eval_views": 3, "eval_projections": "volume",
-                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 12, "denoise": "sure"},
+                    "warm_start": "asd-pocs", "warm_start_steps": 300, "warm_start_anchor": 0.01, "anchor_occupancy": 0.03, "anchor_edge_contrast": 0.0, "correction_passes": 12, "denoise": "sure", "time_budget": 600.0},
         "run": {"bounds_volume": "asd-pocs", "bounds_max_materials": 8, "bounds_k_rule": "peaks", "bounds_min_std": 0.0, "bounds_gmm_restarts": 3},
     },
     "tiny": {
@@ -95,7 +95,7 @@ TABLE: dict[str, dict[str, dict[str, Any]]] = {
                   "occupancy_grid": False, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 32, "num_air_rays": 8},
         "trainer": {"epochs": 2, "prior_epochs": 1, "lr": 1e-3, "lr_decay_at": 0.5, "eval_every": 1, "checkpoint_every": 1, "eval_chunk": 1024, "eval_views": 2, "eval_projections": "rendered",
-                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none"},
+                    "warm_start": "none", "warm_start_steps": 5, "warm_start_anchor": 0.0, "anchor_occupancy": 0.0, "anchor_edge_contrast": 0.0, "correction_passes": 0, "denoise": "none", "time_budget": 0.0},
         "run": {"bounds_volume": "prior", "bounds_max_materials": 4, "bounds_k_rule": "bic", "bounds_min_std": 0.0, "bounds_gmm_restarts": 1},
     },
 }
@@ -160,6 +160,7 @@ NUMBER_RULES = (
     ("trainer", "denoise_steps", True, 0, True), ("trainer", "materials_refit_steps", True, 0, True),
     ("trainer", "correction_noise_factor", False, 0, True), ("trainer", "correction_lr", False, 0, True),
     ("trainer", "correction_curvature", False, 0, True), ("trainer", "denoise_lr", False, 0, True),
+    ("trainer", "time_budget", False, 0, True),
     ("datamanager", "num_object_rays", True, 0, True), ("datamanager", "num_air_rays", True, 0, True),
     ("reconstruction", "iterations", True, 1, True), ("reconstruction", "subsets", True, 1, True),
     ("reconstruction", "relaxation", False, 0, False), ("reconstruction", "tv_steps", True, 0, True),

@@ -351,12 +351,14 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
             "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "2", "--trainer.epochs", "20",
             "--trainer.correction-noise-factor", "0",  # no noise stop: every pass iterates
-            "--trainer.correction-steps", "30", "--trainer.correction-points", "1024"]
+            "--trainer.correction-steps", "30", "--trainer.correction-points", "1024",
+            "--trainer.time-budget", "3600"]  # a budget that leaves room for every pass changes nothing
     code, out, err = run(argv, capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     passes = metrics["correction"]
+    assert metrics["correction_budget"] is None and "left out" not in out
     cap = json.loads((run_dir / "config.json").read_text())["trainer"]["correction_iterations"]
     assert len(passes) == 2 and all(p["iterations"] == cap for p in passes), passes  # no noise stop: the cap
     assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --trainer.correction-refresh 3
@@ -369,6 +371,65 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
                         metrics["psnr3d"], abs_tol=1e-4)
     code, out, err = run(["--resume", str(run_dir)], capsys)
     assert code == 0, err
+
+
+def test_a_pass_is_started_only_where_its_kind_has_ended_in_the_time_left():
+    from kneas_method.engine.correction_stage import pass_fits
+
+    from kneas_method.engine.correction_stage import run_budget
+
+    assert run_budget(600, (128, 128, 128)) == 600 and run_budget(600, (64, 64, 100)) == 600  # a small grid: the budget as given
+    assert run_budget(600, (256, 256, 256)) == 4800 and run_budget(0, (128, 128, 128)) is None and run_budget(None, (8, 8, 8)) is None
+    assert pass_fits(5.0, [], [], True) and not pass_fits(0.0, [], [], True) and not pass_fits(-3.0, [], [], False)
+    seconds, refreshed = [10.0, 4.0, 4.5], [True, False, False]  # a fresh discretisation estimate costs more
+    assert not pass_fits(6.0, seconds, refreshed, True) and pass_fits(10.0, seconds, refreshed, True)
+    assert pass_fits(6.0, seconds, refreshed, False) and not pass_fits(4.4, seconds, refreshed, False)
+    assert not pass_fits(6.0, [10.0], [True], False) and pass_fits(6.0, [5.0], [False], True)  # no pass of its kind yet: either kind's
+
+
+def test_a_time_budget_that_has_run_out_leaves_the_passes_out_and_says_so(tmp_path, capsys):
+    from kneas_method.engine.checkpoint import load_latest_checkpoint
+
+    scene_path = sphere_scene_file(tmp_path)
+    argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
+            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "3", "--trainer.epochs", "4",
+            "--trainer.correction-noise-factor", "0", "--trainer.correction-steps", "5", "--trainer.correction-points", "256",
+            "--trainer.denoise", "sure", "--trainer.time-budget", "1"]  # spent before training ends (30 s are kept for the end)
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert "no time for pass 1, so 3 of 3 passes are left out" in out and "--trainer.time-budget" in out
+    run_dir = run_dir_of(out)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["correction"] == [] and metrics["correction_budget"]["passes_left_out"] == 3
+    assert metrics["correction_budget"]["time_budget_s"] == 1.0 and metrics["correction_budget"]["seconds_left"] <= 1.0
+    assert metrics["denoising"] is not None and metrics["denoising"]["filter"] in ("none", "gaussian", "bilateral")  # still smoothed where needed
+    state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
+    assert state["extra"]["correction_budget"] == metrics["correction_budget"]
+    code, out, err = run(["--resume", str(run_dir)], capsys)  # complete: nothing redone
+    assert code == 0, err
+    assert "already complete" in out
+
+
+def test_the_budget_counts_from_the_runs_start_not_from_the_passes(tmp_path):
+    import time
+
+    from kneas_method import presets, registry
+    from kneas_method.engine.correction_stage import TIME_RESERVE_S, correct_stage
+    from kneas_method.engine.trainer import Trainer
+
+    scene = sphere_scene(SIM)
+    cfg = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2)
+    cfg = presets.resolve(cfg)
+    cfg = dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, correction_passes=2, correction_steps=3, correction_points=128,
+                                                               correction_noise_factor=0.0, time_budget=1000.0))
+    for ago in (1000.0 - TIME_RESERVE_S, 0.0):  # a run that began long ago has spent its budget by the passes
+        trainer = Trainer(cfg, scene, tmp_path / str(ago), epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
+        done = correct_stage(trainer, scene, cfg, "cpu", run_started=time.perf_counter() - ago)
+        if ago:
+            assert done == [] and trainer.correction_budget["passes_left_out"] == 2, trainer.correction_budget
+        else:  # a pass is started (this untrained model's first finds no edge to correct, and ends them)
+            assert len(done) >= 1 and trainer.correction_budget is None, (done, trainer.correction_budget)
+    assert correct_stage(trainer, scene, cfg, "cpu") == done  # done: not redone
 
 
 def test_a_run_solves_at_the_edges_when_asked_and_reads_the_older_setting(tmp_path, capsys):
@@ -397,7 +458,8 @@ def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-refresh", "0", "--dry-run"], capsys)
     assert code != 0 and "--trainer.correction-refresh must be a whole number >= 1, got 0" in err and "Traceback" not in err
     for flag, value, rule in (("--trainer.correction-passes", "-1", "a whole number >= 0"), ("--trainer.correction-lr", "-1e-4", "a number >= 0"),
-                              ("--trainer.materials-refit-steps", "-5", "a whole number >= 0"), ("--trainer.anchor-points", "0", "a whole number >= 1")):
+                              ("--trainer.materials-refit-steps", "-5", "a whole number >= 0"), ("--trainer.anchor-points", "0", "a whole number >= 1"),
+                              ("--trainer.time-budget", "-1", "a number >= 0")):
         code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", flag, value, "--dry-run"], capsys)
         assert code == 2 and f"{flag} must be {rule}, got" in err and "Traceback" not in err
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-ring", "2", "--dry-run"], capsys)

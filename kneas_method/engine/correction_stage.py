@@ -8,12 +8,18 @@ before its first iteration ends them. Then (``trainer.denoise sure``) ``denoise_
 model's volume as far as SURE says its own noise allows (``kneas_method.denoise``; nothing on a clean
 scan) and fits the model to it. The passes' and the smoothing's figures are kept in the checkpoint (rewritten at
 the same step), so a resumed run does not redo them and ``load_run`` opens the corrected model.
+
+**The time budget** (``trainer.time_budget``, :func:`run_budget`): the pipeline gives the stage the
+moment the run started (``run_started``, ``time.perf_counter`` seconds); a pass that :func:`pass_fits` does
+not expect to end ``TIME_RESERVE_S`` before the budget runs out is not started, and
+``trainer.correction_budget`` says so.
 """
 
 from __future__ import annotations
 
+import math
 import time
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -26,11 +32,46 @@ from ..console import say
 # the passes' psnr3d is the same as with the whole volume queried.
 REQUERY_MARGIN = 1
 
+# Seconds of a run's time budget kept for what follows the passes: the smoothing (a projection and
+# SURE; on a noisy scan its fit), the materials stage's mixtures, the evaluation and the report. On a
+# clean scan they took 10 s (abdomen, 2-core Xeon, 75th stop); a noisy scan's passes stop at its noise
+# long before any budget, and its refit of its materials (1-2 min) is not kept for.
+TIME_RESERVE_S = 30.0
+# The budget is for a volume of this many voxels or fewer; a larger one gets it in proportion to its voxels
+# (the classical start, the passes and the evaluation grow with them: head-vox256's 256^3 grid took 20 min).
+BUDGET_VOXELS = 128 ** 3
 
-def correct_stage(trainer, scene, config, device) -> Optional[list]:
+
+def run_budget(time_budget: Optional[float], n_voxel) -> Optional[float]:
+    """Seconds a run on a grid of ``n_voxel`` (nx, ny, nz) voxels may take under ``--trainer.time-budget``
+    ``time_budget`` (None or 0: no budget): the budget, times the grid's voxels over ``BUDGET_VOXELS``
+    where it has more."""
+    if not time_budget:
+        return None
+    return float(time_budget) * max(1.0, math.prod(int(n) for n in n_voxel) / BUDGET_VOXELS)
+
+
+def pass_fits(left: float, seconds: Sequence[float], refreshed: Sequence[bool], refresh: bool) -> bool:
+    """Whether a band-correction pass is expected to end within ``left`` seconds.
+
+    ``seconds`` [n] and ``refreshed`` [n]: what each earlier pass took and whether it computed the
+    discretisation error afresh (the dearest part of a pass); ``refresh``: whether this one will. Its
+    cost is taken as the longest earlier pass of its kind, or of either kind where none is; the first
+    pass needs only some time left.
+    """
+    if left <= 0:
+        return False
+    same = [s for s, r in zip(seconds, refreshed) if bool(r) == bool(refresh)]
+    known = same or list(seconds)
+    return not known or max(known) <= left
+
+
+def correct_stage(trainer, scene, config, device, run_started: Optional[float] = None) -> Optional[list]:
     """The band-correction passes of a trained surface model, then its SURE smoothing
     (``denoise_stage``, kept in ``trainer.denoising``); returns one dict per pass
-    (``Correction.to_json``), or None where the run has none."""
+    (``Correction.to_json``), or None where the run has none. ``run_started``: when the run started
+    (``time.perf_counter`` seconds; None: no budget): no pass is started that is not expected to end
+    ``TIME_RESERVE_S`` before the run's time budget (:func:`run_budget`) runs out (:func:`pass_fits`)."""
     from ..correction import band_correction, grow, requery_band
     from .evaluate import sample_volume
 
@@ -50,7 +91,22 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
     discretisation = None
     volume = fitted = None
     projectors: dict = {}  # the passes' projectors, kept with their ray tables
+    seconds: list[float] = []  # what each pass took, and whether it estimated the discretisation error afresh
+    refreshed: list[bool] = []
+    trainer.correction_budget = None
+    budget = run_budget(t.time_budget, scene.geometry.n_voxel) if run_started is not None else None
+    deadline = None if budget is None else run_started + budget
     for k in range(int(t.correction_passes)):
+        refresh = k % int(t.correction_refresh) == 0
+        if deadline is not None and not pass_fits(deadline - TIME_RESERVE_S - time.perf_counter(), seconds, refreshed, refresh):
+            left = deadline - time.perf_counter()
+            trainer.correction_budget = {"time_budget_s": round(budget, 1), "passes_left_out": int(t.correction_passes) - k,
+                                         "seconds_left": round(left, 1)}
+            say(f"correction: the run's time budget ({budget:.0f} s, --trainer.time-budget; 0 = none) has {max(left, 0.0):.0f} s left, "
+                f"{TIME_RESERVE_S:.0f} s of them kept for the evaluation: no time for pass {k + 1}, "
+                f"so {int(t.correction_passes) - k} of {t.correction_passes} passes are left out (--trainer.time-budget 0 runs them all)")
+            break
+        begun = time.perf_counter()
         if volume is None:
             volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
         else:  # the last fit moved the field in its band: query there again (about a third of the voxels or less)
@@ -59,7 +115,7 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
             result = band_correction(model, volume, projections, scene.geometry, scene.train.angles,
                                      iterations=int(t.correction_iterations), noise_factor=float(t.correction_noise_factor),
                                      weighting=t.correction_weights, ring=t.correction_ring,
-                                     discretisation=None if k % int(t.correction_refresh) == 0 else discretisation,
+                                     discretisation=None if refresh else discretisation,
                                      projectors=projectors,
                                      progress=lambda message: say(f"correction {k + 1}: {message}"))
         discretisation = result.discretisation
@@ -70,15 +126,23 @@ def correct_stage(trainer, scene, config, device) -> Optional[list]:
         fitted = result.band
         trainer.fit_to_volume(target, result.band.cpu().numpy(), int(t.correction_steps), int(t.correction_points),
                               float(t.correction_lr), curvature=float(t.correction_curvature))
+        seconds.append(time.perf_counter() - begun)
+        refreshed.append(refresh)
         say(f"correction {k + 1}: {result.iterations} iterations, residual {result.residuals[0]:.3g} -> {result.residuals[-1]:.3g} "
             f"(noise {result.noise_variance:.3g}); model fitted to the corrected volume, {time.perf_counter() - started:.0f} s so far")
     done = sum(1 for p in passes if p["iterations"] > 0)
     say(f"correction: {done} pass{'es' if done != 1 else ''} written into the model in {time.perf_counter() - started:.0f} s"
         + ("" if done == len(passes) else "; the last found nothing above the data's noise"))
     if t.denoise in ("sure", "sure-gaussian"):
-        if passes[-1]["iterations"] > 0:  # the last pass's fit moved the field in its band
+        if volume is None:  # the budget left no time for a pass
+            volume = torch.as_tensor(sample_volume(model, scene.geometry, device=device), device=device)
+        elif passes[-1]["iterations"] > 0:  # the last pass's fit moved the field in its band
             volume = requery_band(model, scene.geometry, volume, grow(fitted, REQUERY_MARGIN))
-        trainer.denoising = denoise_stage(trainer, volume, config, projections, projectors.get(1))
+        if 1 not in projectors:
+            from ..classical.projector import Projector
+
+            projectors[1] = Projector(scene.geometry, scene.train.angles, device=volume.device)
+        trainer.denoising = denoise_stage(trainer, volume, config, projections, projectors[1])
     trainer.correction = passes
     trainer.correction_time_s = time.perf_counter() - started
     trainer.save(complete=True)

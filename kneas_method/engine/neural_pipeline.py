@@ -13,7 +13,8 @@ object goes on beyond it, in the same model units); the evaluation and the repor
    ``Trainer.train``).
 4. **correction** (surface models, ``trainer.correction_passes`` > 0): ``correct_stage``, passes of
    the band correction of the trained model against the training views (``kneas_method.correction``),
-   each written into the model; the checkpoint is rewritten with them.
+   each written into the model, as many as the run's time budget leaves room for
+   (``trainer.time_budget``); the checkpoint is rewritten with them.
    **materials** (bounds from the peaks rule's fallback: a noisy start): ``materials_stage`` fits
    the mixtures again to the trained volume and, where they find more materials, refits the model
    with them (``bounds.json``, ``config.json`` and the checkpoint follow).
@@ -136,7 +137,7 @@ class NeuralPipeline:
             if tb is not None:
                 tb.flush()
         try:
-            correction = correct_stage(trainer, fit, config, device)
+            correction = correct_stage(trainer, fit, config, device, run_started=self.started)
         except KeyboardInterrupt:
             return _interrupted(run_dir, f"[yellow]interrupted during the correction[/]; training is complete (checkpoint {trainer.last_checkpoint})")
         try:

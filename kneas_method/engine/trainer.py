@@ -154,6 +154,7 @@ class Trainer:
         self.anchor: Optional[Anchor] = None
         self.correction: Optional[list] = None  # the band-correction passes after training (correction_stage)
         self.correction_time_s = 0.0
+        self.correction_budget: Optional[dict] = None  # where the run's time budget ended the passes early (correction_stage)
         self.denoising: Optional[dict] = None  # the SURE smoothing after the passes (correction_stage.denoise_stage)
         self.materials_refit: Optional[dict] = None  # the materials found again on the trained volume (materials_stage)
 
@@ -187,6 +188,7 @@ class Trainer:
                 "num_materials": int(self.model.num_materials),
                 "correction": self.correction,
                 "correction_time_s": float(self.correction_time_s),
+                "correction_budget": self.correction_budget,
                 "denoising": self.denoising,
                 "materials_refit": self.materials_refit,
             },
@@ -211,6 +213,7 @@ class Trainer:
         self.complete = bool(extra.get("complete", False))
         self.correction = extra.get("correction")
         self.correction_time_s = float(extra.get("correction_time_s", 0.0))
+        self.correction_budget = extra.get("correction_budget")
         self.denoising = extra.get("denoising")
         self.materials_refit = extra.get("materials_refit")
 
