@@ -194,17 +194,18 @@ class TrainerConfig:
             pass's: the whole filled volume moves, not a band).
         denoise_lr: learning rate of that fit.
         time_budget: seconds the whole run should take at most, from the command's start (the
-            scene, the classical start, training, the passes, the smoothing, the evaluation). The
-            band-correction passes give way: one that is not expected to end
-            ``correction_stage.TIME_RESERVE_S`` (30 s) before the budget runs out, for what follows
-            them, is not started (its cost: the longest earlier pass of its kind, with or without
-            a fresh discretisation estimate), and ``metrics.json``'s ``correction_budget`` says how
-            many were left out. Nothing else gives way: where training alone runs past the budget,
-            the run does too. The budget is for a grid of 128³ voxels or fewer; a larger grid gets it
-            in proportion to its voxels (``correction_stage.run_budget``). 0 = no budget; None = the preset's (cpu 600: goal 3's 10 minutes on a
-            2-core CPU, which a slower CPU than the ones measured meets by fewer passes; paper and
-            tiny 0). A budget that binds makes the result depend on the machine's speed, and the
-            run says so; give 0 for the same passes everywhere.
+            scene, the classical start, training, the passes, the smoothing, the evaluation;
+            ``engine.budget``). Training gives way first: after 100 steps, where the rest of them
+            and the band-correction passes (taken as 0.9 x the whole training's time) would not end
+            30 s before the budget runs out, training is cut to the whole epochs that do (a quarter
+            of them at least; ``config.json`` and ``metrics.json``'s ``training_budget`` say so).
+            Then the passes: one that is not expected to end 30 s before it (its cost: the longest
+            earlier pass of its kind, with or without a fresh discretisation estimate) is not
+            started (``correction_budget``). The classical start and the evaluation never give way.
+            The budget is for a grid of 128³ voxels or fewer; a larger grid gets it in proportion to
+            its voxels. 0 = no budget; None = the preset's (cpu 600: goal 3's 10 minutes on a 2-core
+            CPU; paper and tiny 0). A budget that binds makes the result depend on the machine's
+            speed, and the run says so; give 0 for the same run everywhere.
         materials_refit_steps: where the bounds came from the peaks rule's fallback (the start's
             histogram had fewer than two peaks: a noisy scan), after the smoothing the same
             mixtures are fitted again to the trained volume after the same bilateral filter

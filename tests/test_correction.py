@@ -374,9 +374,9 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
 
 
 def test_a_pass_is_started_only_where_its_kind_has_ended_in_the_time_left():
-    from kneas_method.engine.correction_stage import pass_fits
+    from kneas_method.engine.budget import pass_fits
 
-    from kneas_method.engine.correction_stage import run_budget
+    from kneas_method.engine.budget import run_budget
 
     assert run_budget(600, (128, 128, 128)) == 600 and run_budget(600, (64, 64, 100)) == 600  # a small grid: the budget as given
     assert run_budget(600, (256, 256, 256)) == 4800 and run_budget(0, (128, 128, 128)) is None and run_budget(None, (8, 8, 8)) is None
@@ -387,19 +387,34 @@ def test_a_pass_is_started_only_where_its_kind_has_ended_in_the_time_left():
     assert not pass_fits(6.0, [10.0], [True], False) and pass_fits(6.0, [5.0], [False], True)  # no pass of its kind yet: either kind's
 
 
-def test_a_time_budget_that_has_run_out_leaves_the_passes_out_and_says_so(tmp_path, capsys):
+def test_training_is_cut_to_whole_epochs_that_leave_the_passes_their_time():
+    from kneas_method.engine.budget import PASSES_SHARE, training_steps
+
+    assert training_steps(1000.0, 100, 4000, 0.06, 50, True) == 4000  # 100 + 3900 x 0.06 + 0.9 x 240 s < 1000 s: unchanged
+    fit = 100 + (300.0 - PASSES_SHARE * 4000 * 0.06) / 0.06  # the steps that end with the passes' share left
+    assert training_steps(300.0, 100, 4000, 0.06, 50, True) == int(fit // 50) * 50
+    assert training_steps(300.0, 100, 4000, 0.06, 50, False) == 4000  # no passes to keep time for
+    assert training_steps(-50.0, 100, 4000, 0.06, 50, True) == 1000  # never under a quarter of the steps
+    assert training_steps(-50.0, 1100, 4000, 0.06, 50, True) == 1100 and training_steps(-50.0, 1120, 4000, 0.06, 50, True) == 1150  # nor the epoch under way
+
+
+def test_a_time_budget_that_has_run_out_shortens_training_leaves_the_passes_out_and_says_so(tmp_path, capsys):
     from kneas_method.engine.checkpoint import load_latest_checkpoint
 
     scene_path = sphere_scene_file(tmp_path)
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
-            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "3", "--trainer.epochs", "4",
+            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "3", "--trainer.epochs", "60",
             "--trainer.correction-noise-factor", "0", "--trainer.correction-steps", "5", "--trainer.correction-points", "256",
             "--trainer.denoise", "sure", "--trainer.time-budget", "1"]  # spent before training ends (30 s are kept for the end)
     code, out, err = run(argv, capsys)
     assert code == 0, err
     assert "no time for pass 1, so 3 of 3 passes are left out" in out and "--trainer.time-budget" in out
+    assert "100 of the 240 steps (25 of 60 epochs)" in out  # 4 steps an epoch: cut at the 100th step, where it was timed
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["steps"] == 100 and metrics["epochs"] == 25
+    assert metrics["training_budget"]["epochs_planned"] == 60 and metrics["training_budget"]["epochs"] == 25
+    assert json.loads((run_dir / "config.json").read_text())["trainer"]["epochs"] == 25  # what a resumed run trains
     assert metrics["correction"] == [] and metrics["correction_budget"]["passes_left_out"] == 3
     assert metrics["correction_budget"]["time_budget_s"] == 1.0 and metrics["correction_budget"]["seconds_left"] <= 1.0
     assert metrics["denoising"] is not None and metrics["denoising"]["filter"] in ("none", "gaussian", "bilateral")  # still smoothed where needed
@@ -414,7 +429,8 @@ def test_the_budget_counts_from_the_runs_start_not_from_the_passes(tmp_path):
     import time
 
     from kneas_method import presets, registry
-    from kneas_method.engine.correction_stage import TIME_RESERVE_S, correct_stage
+    from kneas_method.engine.budget import TIME_RESERVE_S
+    from kneas_method.engine.correction_stage import correct_stage
     from kneas_method.engine.trainer import Trainer
 
     scene = sphere_scene(SIM)

@@ -9,22 +9,22 @@ model's volume as far as SURE says its own noise allows (``kneas_method.denoise`
 scan) and fits the model to it. The passes' and the smoothing's figures are kept in the checkpoint (rewritten at
 the same step), so a resumed run does not redo them and ``load_run`` opens the corrected model.
 
-**The time budget** (``trainer.time_budget``, :func:`run_budget`): the pipeline gives the stage the
-moment the run started (``run_started``, ``time.perf_counter`` seconds); a pass that :func:`pass_fits` does
-not expect to end ``TIME_RESERVE_S`` before the budget runs out is not started, and
+**The time budget** (``trainer.time_budget``, ``engine.budget``): the pipeline gives the stage the
+moment the run started (``run_started``, ``time.perf_counter`` seconds); a pass that ``budget.pass_fits``
+does not expect to end ``budget.TIME_RESERVE_S`` before the budget runs out is not started, and
 ``trainer.correction_budget`` says so.
 """
 
 from __future__ import annotations
 
-import math
 import time
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 import torch
 
 from ..console import say
+from .budget import TIME_RESERVE_S, pass_fits, run_budget
 
 # After the first pass the model's volume is queried again only within this many voxels of the band
 # the last pass fitted (within two of the last volume's edges): elsewhere the fit moves it by an rms
@@ -32,46 +32,12 @@ from ..console import say
 # the passes' psnr3d is the same as with the whole volume queried.
 REQUERY_MARGIN = 1
 
-# Seconds of a run's time budget kept for what follows the passes: the smoothing (a projection and
-# SURE; on a noisy scan its fit), the materials stage's mixtures, the evaluation and the report. On a
-# clean scan they took 10 s (abdomen, 2-core Xeon, 75th stop); a noisy scan's passes stop at its noise
-# long before any budget, and its refit of its materials (1-2 min) is not kept for.
-TIME_RESERVE_S = 30.0
-# The budget is for a volume of this many voxels or fewer; a larger one gets it in proportion to its voxels
-# (the classical start, the passes and the evaluation grow with them: head-vox256's 256^3 grid took 20 min).
-BUDGET_VOXELS = 128 ** 3
-
-
-def run_budget(time_budget: Optional[float], n_voxel) -> Optional[float]:
-    """Seconds a run on a grid of ``n_voxel`` (nx, ny, nz) voxels may take under ``--trainer.time-budget``
-    ``time_budget`` (None or 0: no budget): the budget, times the grid's voxels over ``BUDGET_VOXELS``
-    where it has more."""
-    if not time_budget:
-        return None
-    return float(time_budget) * max(1.0, math.prod(int(n) for n in n_voxel) / BUDGET_VOXELS)
-
-
-def pass_fits(left: float, seconds: Sequence[float], refreshed: Sequence[bool], refresh: bool) -> bool:
-    """Whether a band-correction pass is expected to end within ``left`` seconds.
-
-    ``seconds`` [n] and ``refreshed`` [n]: what each earlier pass took and whether it computed the
-    discretisation error afresh (the dearest part of a pass); ``refresh``: whether this one will. Its
-    cost is taken as the longest earlier pass of its kind, or of either kind where none is; the first
-    pass needs only some time left.
-    """
-    if left <= 0:
-        return False
-    same = [s for s, r in zip(seconds, refreshed) if bool(r) == bool(refresh)]
-    known = same or list(seconds)
-    return not known or max(known) <= left
-
-
 def correct_stage(trainer, scene, config, device, run_started: Optional[float] = None) -> Optional[list]:
     """The band-correction passes of a trained surface model, then its SURE smoothing
     (``denoise_stage``, kept in ``trainer.denoising``); returns one dict per pass
     (``Correction.to_json``), or None where the run has none. ``run_started``: when the run started
     (``time.perf_counter`` seconds; None: no budget): no pass is started that is not expected to end
-    ``TIME_RESERVE_S`` before the run's time budget (:func:`run_budget`) runs out (:func:`pass_fits`)."""
+    ``TIME_RESERVE_S`` before the run's time budget (``budget.run_budget``) runs out (``budget.pass_fits``)."""
     from ..correction import band_correction, grow, requery_band
     from .evaluate import sample_volume
 

@@ -14,7 +14,8 @@ object goes on beyond it, in the same model units); the evaluation and the repor
 4. **correction** (surface models, ``trainer.correction_passes`` > 0): ``correct_stage``, passes of
    the band correction of the trained model against the training views (``kneas_method.correction``),
    each written into the model, as many as the run's time budget leaves room for
-   (``trainer.time_budget``); the checkpoint is rewritten with them.
+   (``trainer.time_budget``, ``engine.budget``: training gives way first, then the passes); the
+   checkpoint is rewritten with them.
    **materials** (bounds from the peaks rule's fallback: a noisy start): ``materials_stage`` fits
    the mixtures again to the trained volume and, where they find more materials, refits the model
    with them (``bounds.json``, ``config.json`` and the checkpoint follow).
@@ -35,6 +36,7 @@ from ..errors import ConfigError
 from ..model import field_has_surfaces
 from . import report
 from .bounds_stage import BoundsResult, estimate_bounds
+from .budget import run_budget
 from .classical_volume import classical_volume, start_options
 from .correction_stage import correct_stage
 from .evaluate import evaluate_model_stage
@@ -127,8 +129,11 @@ class NeuralPipeline:
                 save_run_config(run_dir, config)
             stage = "before training (the warm start)"
             warm = self.warm_start()
+            budget = run_budget(config.trainer.time_budget, fit.geometry.n_voxel)
             trainer = train_stage(config, fit, run_dir, epochs=config.trainer.epochs, device=device,
-                                  bounds=None if bounds is None else (bounds.alphas, bounds.betas), label="model", tb=tb, warm=warm)
+                                  bounds=None if bounds is None else (bounds.alphas, bounds.betas), label="model", tb=tb, warm=warm,
+                                  deadline=None if budget is None else self.started + budget)
+            config = trainer.config  # the epochs it trained, where the budget shortened them (config.json says so too)
         except StageInterrupted as exc:
             return _interrupted(run_dir, f"[yellow]interrupted at step {exc.step}[/]: checkpoint {exc.checkpoint or 'no checkpoint (none written yet)'}")
         except KeyboardInterrupt:

@@ -82,6 +82,7 @@ def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classi
                prior_time_s=prior_time, classical_time_s=classical_time_s, bounds_time_s=bounds_time, classical_volume=classical_volume,
                correction_time_s=correction_time, correction=correction,
                correction_budget=trainer.correction_budget if correction is not None else None,
+               training_budget=trainer.training_budget,
                denoising=trainer.denoising if correction is not None else None,
                materials_time_s=materials_time, materials_refit=refit, loss_scale=float(trainer.model.loss_scale),
                eval_time_s=evaluation.seconds, **facts, bad_steps=len(trainer.bad_steps))

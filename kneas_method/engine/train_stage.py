@@ -36,10 +36,11 @@ def set_visual_hull(model, scene, label: str = "model") -> None:
 
 
 def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, label: str, tb=None,
-                warm: Optional[WarmStartVolume] = None) -> Trainer:
+                warm: Optional[WarmStartVolume] = None, deadline: Optional[float] = None) -> Trainer:
     """Build the stage's Trainer, resume it if it has checkpoints, else warm-start it from
     ``warm`` when given (``trainer.warm_start_steps`` steps), keep ``warm`` as a prior when
-    ``trainer.warm_start_anchor`` > 0 (resumed runs too), and train it."""
+    ``trainer.warm_start_anchor`` > 0 (resumed runs too), and train it, shortened where the run's
+    time budget (``deadline``, ``time.perf_counter`` seconds; None: none) needs it (``Trainer.train``)."""
     trainer = Trainer(config, scene, run_dir, epochs=epochs, device=device, bounds=bounds, label=label, console=console,
                       tb=tb, tb_prefix=f"{label}/")
     path = trainer.resume()
@@ -83,5 +84,6 @@ def train_stage(config, scene, run_dir: Path, *, epochs: int, device, bounds, la
         say(f"{label}: anchor: the {warm.what.upper()} volume kept as a prior, weight {anchor:g}, "
             f"{config.trainer.anchor_points:,} voxel centres per step{where}{labels} ({'; '.join(hints)})")
     say(f"{label}: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
-    trainer.train()
+    t = config.trainer
+    trainer.train(deadline=deadline, passes=bool(t.correction_passes and t.correction_iterations and trainer.model.has_surfaces))
     return trainer

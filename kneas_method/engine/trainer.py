@@ -155,6 +155,7 @@ class Trainer:
         self.correction: Optional[list] = None  # the band-correction passes after training (correction_stage)
         self.correction_time_s = 0.0
         self.correction_budget: Optional[dict] = None  # where the run's time budget ended the passes early (correction_stage)
+        self.training_budget: Optional[dict] = None  # where it shortened training (train(deadline=...))
         self.denoising: Optional[dict] = None  # the SURE smoothing after the passes (correction_stage.denoise_stage)
         self.materials_refit: Optional[dict] = None  # the materials found again on the trained volume (materials_stage)
 
@@ -162,9 +163,9 @@ class Trainer:
         """A fresh Adam optimiser over the model's parameters and the learning-rate schedule."""
         t = self.config.trainer
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(t.lr))
-        decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
+        self.decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
         factor = float(t.lr_decay_factor)
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: factor if s >= decay_step else 1.0)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: factor if s >= self.decay_step else 1.0)
 
     # ---------------------------------------------------------------- state
     def state(self, complete: bool = False) -> dict[str, Any]:
@@ -189,6 +190,7 @@ class Trainer:
                 "correction": self.correction,
                 "correction_time_s": float(self.correction_time_s),
                 "correction_budget": self.correction_budget,
+                "training_budget": self.training_budget,
                 "denoising": self.denoising,
                 "materials_refit": self.materials_refit,
             },
@@ -214,6 +216,7 @@ class Trainer:
         self.correction = extra.get("correction")
         self.correction_time_s = float(extra.get("correction_time_s", 0.0))
         self.correction_budget = extra.get("correction_budget")
+        self.training_budget = extra.get("training_budget")
         self.denoising = extra.get("denoising")
         self.materials_refit = extra.get("materials_refit")
 
@@ -486,9 +489,34 @@ class Trainer:
             loss = loss + a.occupancy_weight * labels * a.label_mask[queried].sum().clamp(min=1) / a.label_mask[idx].sum().clamp(min=1)
         return a.weight * loss
 
+    def shorten(self, total_steps: int, seconds_per_step: float, left: float, say: Callable[[str], None] = print) -> None:
+        """Train ``total_steps`` (whole epochs) instead of the planned steps, the learning rate's step at
+        the same share of them, because the run's time budget (``left`` seconds of it) does not hold them
+        at ``seconds_per_step``; ``config.json`` is rewritten with the epochs, so that a resumed run
+        trains the same, and ``training_budget`` keeps what was done."""
+        from .run_dir import save_run_config
+
+        t = self.config.trainer
+        planned, planned_steps = self.epochs, self.total_steps
+        self.epochs = int(total_steps) // self.steps_per_epoch
+        self.total_steps = self.epochs * self.steps_per_epoch
+        self.decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
+        self.config = dataclasses.replace(self.config, trainer=dataclasses.replace(t, epochs=self.epochs))
+        save_run_config(self.run_dir, self.config)
+        self.training_budget = {"epochs_planned": planned, "epochs": self.epochs,
+                                "seconds_per_step": round(float(seconds_per_step), 5), "seconds_left": round(float(left), 1)}
+        say(f"{self.label}: the run's time budget (--trainer.time-budget; 0 = none) has {left:.0f} s left, and a step takes "
+            f"{seconds_per_step:.3f} s: {self.total_steps} of the {planned_steps} steps ({self.epochs} of {planned} epochs) leave the "
+            "band-correction passes their time, so training is shortened to them (--trainer.time-budget 0 trains them all)")
+
     # ----------------------------------------------------------------- loop
-    def train(self, on_step: Optional[Callable[[int], None]] = None) -> None:
-        """Run the remaining steps; raise StageInterrupted on Ctrl-C, KneasError on repeated bad steps."""
+    def train(self, on_step: Optional[Callable[[int], None]] = None, deadline: Optional[float] = None, passes: bool = False) -> None:
+        """Run the remaining steps; raise StageInterrupted on Ctrl-C, KneasError on repeated bad steps.
+
+        ``deadline``: when the run's time budget runs out (``time.perf_counter`` seconds; None: no
+        budget). After ``budget.TIMED_STEPS`` steps training is shortened, where it must be, to the
+        whole epochs that leave the run's band-correction passes (``passes``) their time
+        (:meth:`shorten`, ``budget.training_steps``)."""
         if self.complete or self.step >= self.total_steps:
             self.complete = True
             return
@@ -500,6 +528,9 @@ class Trainer:
         self.model.train()
         progress = stage_progress(self.console)
         started = time.perf_counter()
+        from .budget import TIME_RESERVE_S, TIMED_STEPS, training_steps
+
+        timed_from, check_at = started, (self.step + TIMED_STEPS if deadline is not None else None)
         last_info = ""
         with progress, _DeferredInterrupt() as interrupt:
             task = progress.add_task(self.label, total=self.total_steps, completed=self.step, info="")
@@ -545,6 +576,14 @@ class Trainer:
                     progress.update(task, completed=self.step, info=last_info)
                     if on_step is not None:
                         on_step(self.step)
+                    if self.step == check_at:
+                        now = time.perf_counter()
+                        per_step = (now - timed_from) / TIMED_STEPS
+                        fits = training_steps(deadline - TIME_RESERVE_S - now, self.step, self.total_steps, per_step,
+                                              self.steps_per_epoch, passes)
+                        if fits < self.total_steps:
+                            self.shorten(fits, per_step, deadline - now, say=progress.console.print)
+                            progress.update(task, total=self.total_steps)
                     epoch_done = self.step % self.steps_per_epoch == 0
                     epoch = self.step // self.steps_per_epoch
                     last = self.step == self.total_steps
