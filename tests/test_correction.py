@@ -373,31 +373,6 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     assert code == 0, err
 
 
-def test_a_pass_is_started_only_where_its_kind_has_ended_in_the_time_left():
-    from kneas_method.engine.budget import pass_fits
-
-    from kneas_method.engine.budget import run_budget
-
-    assert run_budget(600, (128, 128, 128)) == 600 and run_budget(600, (64, 64, 100)) == 600  # a small grid: the budget as given
-    assert run_budget(600, (256, 256, 256)) == 4800 and run_budget(0, (128, 128, 128)) is None and run_budget(None, (8, 8, 8)) is None
-    assert pass_fits(5.0, [], [], True) and not pass_fits(0.0, [], [], True) and not pass_fits(-3.0, [], [], False)
-    seconds, refreshed = [10.0, 4.0, 4.5], [True, False, False]  # a fresh discretisation estimate costs more
-    assert not pass_fits(6.0, seconds, refreshed, True) and pass_fits(10.0, seconds, refreshed, True)
-    assert pass_fits(6.0, seconds, refreshed, False) and not pass_fits(4.4, seconds, refreshed, False)
-    assert not pass_fits(6.0, [10.0], [True], False) and pass_fits(6.0, [5.0], [False], True)  # no pass of its kind yet: either kind's
-
-
-def test_training_is_cut_to_whole_epochs_that_leave_the_passes_their_time():
-    from kneas_method.engine.budget import PASSES_SHARE, training_steps
-
-    assert training_steps(1000.0, 100, 4000, 0.06, 50, True) == 4000  # 100 + 3900 x 0.06 + 0.9 x 240 s < 1000 s: unchanged
-    fit = 100 + (300.0 - PASSES_SHARE * 4000 * 0.06) / 0.06  # the steps that end with the passes' share left
-    assert training_steps(300.0, 100, 4000, 0.06, 50, True) == int(fit // 50) * 50
-    assert training_steps(300.0, 100, 4000, 0.06, 50, False) == 4000  # no passes to keep time for
-    assert training_steps(-50.0, 100, 4000, 0.06, 50, True) == 1000  # never under a quarter of the steps
-    assert training_steps(-50.0, 1100, 4000, 0.06, 50, True) == 1100 and training_steps(-50.0, 1120, 4000, 0.06, 50, True) == 1150  # nor the epoch under way
-
-
 def test_a_time_budget_that_has_run_out_shortens_training_leaves_the_passes_out_and_says_so(tmp_path, capsys):
     from kneas_method.engine.checkpoint import load_latest_checkpoint
 

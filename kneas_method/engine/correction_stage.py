@@ -32,6 +32,7 @@ from .budget import TIME_RESERVE_S, pass_fits, run_budget
 # the passes' psnr3d is the same as with the whole volume queried.
 REQUERY_MARGIN = 1
 
+
 def correct_stage(trainer, scene, config, device, run_started: Optional[float] = None) -> Optional[list]:
     """The band-correction passes of a trained surface model, then its SURE smoothing
     (``denoise_stage``, kept in ``trainer.denoising``); returns one dict per pass
