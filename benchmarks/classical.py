@@ -6,6 +6,7 @@
     python benchmarks/classical.py --runs "sart:iterations=5" "sart:iterations=10" "cgls:iterations=30" \\
         --threads 2 --out benchmarks/results/classical_cpu.json
     python benchmarks/classical.py --scenes foot,jaw --runs "asd-pocs:iterations=40" --trace   # every count 1..40
+    python benchmarks/classical.py --scenes abdomen --runs "cgls:iterations=30" --dice --shells   # also with shells relabelled
 
 A run is ``algorithm[:key=value,...]`` (``fdk``, ``sart``, ``os-sart``, ``cgls``,
 ``asd-pocs`` with fields of ``ReconstructionOptions``: ``iterations``, ``relaxation``,
@@ -100,6 +101,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
                     "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule (presets.TABLE['cpu']: the histogram's "
                     "peaks, bic-valleys with its GMM starts where there are fewer than two)")
+    ap.add_argument("--shells", action="store_true", help="with --dice: also score the thresholded volume with its partial-volume "
+                    "shells relabelled first, as kneas-eval does a k-neas model's (kneas_method.evaluation.partial_volume): "
+                    "the same keys ending in _shells")
     ap.add_argument("--trace", action="store_true", help="score the volume after every iteration (psnr3d / ssim3d) and "
                     "report the best iteration count of each run; needs ground truth")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
@@ -155,20 +159,21 @@ def main(argv=None) -> int:
                 row["trace"] = trace
                 row["best"] = max(trace, key=lambda t: t["psnr3d"])
             if args.dice and scene.labels is not None:
-                mm = volume_material_metrics(vol, scene, surfaces=scene.membership is not None)
-                row["dice"] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
-                row["dice_mean"] = mm["dice_mean"]
-                row["chamfer_mm_mean"] = mm.get("chamfer_mm_mean")
-                row["chamfer_mm"] = per_material_chamfer(mm)
                 cpu = TABLE["cpu"]["run"]  # the K rule the cpu preset gives k-neas, from its one definition
-                mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=cpu["bounds_k_rule"],
-                                             min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"],
-                                             surfaces=scene.membership is not None)
-                row["cpu_rule"] = {"k_rule": cpu["bounds_k_rule"], "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"]}
-                row["dice_cpu_rule"] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
-                row["dice_mean_cpu_rule"] = mv["dice_mean"]
-                row["chamfer_mm_mean_cpu_rule"] = mv.get("chamfer_mm_mean")
-                row["chamfer_mm_cpu_rule"] = per_material_chamfer(mv)
+                for tail, shells in [("", False)] + ([("_shells", True)] if args.shells else []):
+                    mm = volume_material_metrics(vol, scene, surfaces=scene.membership is not None, shells=shells)
+                    row["dice" + tail] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
+                    row["dice_mean" + tail] = mm["dice_mean"]
+                    row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
+                    row["chamfer_mm" + tail] = per_material_chamfer(mm)
+                    mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=cpu["bounds_k_rule"],
+                                                 min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"],
+                                                 surfaces=scene.membership is not None, shells=shells)
+                    row["cpu_rule"] = {"k_rule": cpu["bounds_k_rule"], "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"]}
+                    row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
+                    row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
+                    row["chamfer_mm_mean_cpu_rule" + tail] = mv.get("chamfer_mm_mean")
+                    row["chamfer_mm_cpu_rule" + tail] = per_material_chamfer(mv)
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
@@ -189,7 +194,8 @@ def main(argv=None) -> int:
                     + ("; dice / chamfer_mm (per material, mm) / *_mean: the volume thresholded at GMM bounds fitted on "
                        "itself with the paper's K rule (K = 1..4 by BIC), air at 0 a matching candidate; *_cpu_rule: the "
                        "same with the cpu preset's K rule (cpu_rule: the rule, the rule that decided K, K); a material no "
-                       "class was matched to has Dice 0 and no Chamfer" if args.dice else "")
+                       "class was matched to has Dice 0 and no Chamfer; keys ending in _shells: the same with the partial-volume shells "
+                       "relabelled first (--shells)" if args.dice else "")
                     + ("; trace: psnr3d / ssim3d after every iteration (the seconds include scoring them); best: its "
                        "highest psnr3d" if args.trace else ""),
             "rows": [],

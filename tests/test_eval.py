@@ -42,6 +42,7 @@ def test_eval_writes_metrics_and_figures(run_dir, capsys):
         if entry["predicted_materials"] and entry["pred_surface_points"]:
             assert entry["chamfer_mm"] >= 0 and 0 <= entry["fscore"] <= 1
     assert "material matching" in text and "2D PSNR" in text
+    assert mat["shells_relabelled"] is True and "partial-volume shells" in mat["definition"]
     figs = sorted(p.name for p in (outs[0] / "figures").glob("*.png"))
     assert "slices.png" in figs and "weights.png" in figs and any(f.startswith("projection-") for f in figs)
 
@@ -54,6 +55,10 @@ def test_eval_checkpoint_and_output(run_dir, tmp_path):
     assert m["checkpoint"] == str(ckpt)
     assert all(e.get("chamfer_mm") is None for e in m["materials"]["materials"].values())
     assert not (out / "figures").exists()
+    kept = tmp_path / "kept"
+    assert _cli(["--checkpoint", str(ckpt), "-o", str(kept), "--no-figures", "--no-surfaces", "--keep-shells"]) == 0
+    mat = json.loads((kept / "metrics.json").read_text())["materials"]
+    assert mat["shells_relabelled"] is False and mat["shell_cells_moved"] == {}
 
 
 def test_eval_user_errors(tmp_path, capsys):

@@ -104,6 +104,26 @@ def test_mesh_export_kneas(files, tmp_path, capsys):
     assert "(checked by: watertight when every part is)" in text
 
 
+def test_visible_meshes_are_the_shell_free_fields_evaluation_scores(files, tmp_path, monkeypatch):
+    """--surface visible contours the fields with partial-volume shells relabelled, the ones
+    kneas-eval scores; raw contours each d_k."""
+    from kneas_method.evaluation import surfaces
+    from kneas_method.export import mesh as mesh_module
+
+    calls = []
+    real = surfaces.shell_free_fields
+    monkeypatch.setattr(surfaces, "shell_free_fields", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    run = load_run(files["kneas"])
+    grid, fields, kind = mesh_module.sample_fields(run, 40, surface="visible")
+    assert kind == "sdf" and fields.shape == tuple(grid.n_voxel) + (2,) and len(calls) == 1
+    assert np.allclose(calls[0], mesh_module.material_levels(run)[1])
+    _, raw, _ = mesh_module.sample_fields(run, 40, surface="raw")
+    assert len(calls) == 1 and not np.allclose(raw, fields)
+    out = tmp_path / "visible"
+    assert _cli(["mesh", str(files["kneas"]), "-o", str(out), "--resolution", "40", "--surface", "visible"]) == 0
+    assert json.loads((out / "meshes.json").read_text())["meshes"][0]["source"] == "visible region of material 1"
+
+
 def _ball(shape, centre, radius):
     idx = np.indices(shape).astype(np.float64)
     return np.sqrt(sum((i - c) ** 2 for i, c in zip(idx, centre))) <= radius
@@ -388,3 +408,20 @@ def test_unfinished_checkpoints_are_named(files):
     assert "12 correction passes" in unfinished_notes(trained, with_passes, run_dir)[0]
     done = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "correction": []}}
     assert unfinished_notes(done, with_passes, run_dir) == []
+
+
+def test_the_exported_label_volume_is_the_one_evaluation_scores():
+    """kneas-export volume's labels: the selector's, with partial-volume shells relabelled."""
+    from kneas_method.evaluation.surfaces import labels_from_weights, query_grid, voxel_labels
+    from kneas_method.export.volume import label_volume
+
+    from conftest import sphere_scene
+    from test_surfaces import ShellModel
+
+    scene = sphere_scene()
+    q = query_grid(ShellModel(scene.geometry), scene.geometry, keys=("mu", "weights", "mu_materials"))
+    labels = label_volume(q)
+    raw = labels_from_weights(q["weights"])
+    assert (labels == voxel_labels(q)[0]).all()
+    assert (labels != raw).sum() == sum(voxel_labels(q)[2].values()) > 0
+    assert (labels[raw != 2] == raw[raw != 2]).all()  # only the shell material's cells move

@@ -160,3 +160,48 @@ def test_matching_uses_the_reconstructed_attenuation_not_the_raw_head():
     assert match_materials(material_mean_attenuation(heads, weights, labels), levels) == [2, 3]  # raw heads: marrow
     mean = material_mean_attenuation(heads, weights, labels, mu=mu)
     assert np.allclose(mean, [0.28, 0.9]) and match_materials(mean, levels) == [1, 3]
+
+
+class ShellModel:
+    """Stands in for a trained K = 3 model on the sphere scene: soft tissue (the big sphere),
+    bone (the small one) and, between them, a partial-volume shell 7 mm thick (under one 8 mm
+    voxel) around the bone, labelled a third material. Its attenuation ramps as an edge's
+    does: 0.72 on the bone's side, 0.45 on the soft tissue's; its mean, 0.58, matches it to bone."""
+
+    has_surfaces = True
+    num_materials = 3
+
+    def __init__(self, geometry, shell_mm: float = 7.0, inner_mm: float = 3.5):
+        self.geometry, self.shell_mm, self.inner_mm = geometry, shell_mm, inner_mm
+
+    def query(self, points):
+        import torch
+
+        from conftest import BIG, SMALL, sphere_sdf_model_units
+
+        mm = self.geometry.mm_per_unit
+        shell = (SMALL[0], SMALL[1] + self.shell_mm)
+        d = sphere_sdf_model_units(points, self.geometry, spheres=(BIG, shell, SMALL))  # [P, 3]
+        e = torch.from_numpy(visible_fields(d.numpy()))
+        lab = torch.where((e < 0).any(-1), (e < 0).float().argmax(-1) + 1, torch.zeros(len(points), dtype=torch.long))
+        weights = torch.nn.functional.one_hot(lab, 4)[:, 1:].float()
+        ramp = torch.where(d[:, 2] * mm < self.inner_mm, torch.tensor(0.72), torch.tensor(0.45))
+        mu = torch.stack([torch.zeros(len(points)), torch.full((len(points),), 0.3), ramp, torch.full((len(points),), 0.8)], -1)
+        mu = mu.gather(1, lab[:, None])[:, 0]
+        return {"distances": d, "weights": weights, "mu": mu, "mu_materials": torch.tensor([0.3, 0.58, 0.8]).expand(len(points), 3)}
+
+
+def test_a_partial_volume_shell_matched_to_bone_is_split_at_its_edge_midpoint(scene):
+    model = ShellModel(scene.geometry)
+    raw = material_metrics(model, scene, factor=2, shells=False)
+    clean = material_metrics(model, scene, factor=2)
+    assert [m["gt_label"] for m in raw["matching"]] == [1, 2, 2]
+    assert clean["shells_relabelled"] and not raw["shells_relabelled"]
+    assert clean["shell_cells_moved"]["surface_grid_cells"]["2"] > 0
+    assert clean["shell_cells_moved"]["voxels"]["2"] > 0
+    bone_raw, bone = raw["materials"]["bone"], clean["materials"]["bone"]
+    # as is, the bone's surface is the shell's outside, 7 mm out; split at the ramp, 3.5 mm
+    assert bone_raw["chamfer_mm"] > 5.0
+    assert bone["chamfer_mm"] < bone_raw["chamfer_mm"] - 2.0
+    assert bone["dice"] > bone_raw["dice"]
+    assert clean["materials"]["soft"]["dice"] >= raw["materials"]["soft"]["dice"]

@@ -13,8 +13,9 @@ Writes ``metrics.json`` and figures to ``-o DIR`` (default ``RUN_DIR/eval-<times
   units), also against the truth's maximum and range (``psnr3d_truth_peak``, ``ssim3d_truth_range``);
 * built-in scenes: per ground-truth material Dice, Chamfer distance (mm) and F-score at
   one voxel, with the material matching. SDF methods: labels and surfaces from the
-  fields; methods without (classical, NAF): the volume thresholded at the automatic GMM
-  bounds fitted on it, the way a user would segment it
+  fields, partial-volume shells relabelled (``--keep-shells``: as they are); methods without
+  (classical, NAF): the volume thresholded at the automatic GMM bounds fitted on it, the way
+  a user would segment it
   (:mod:`kneas_method.evaluation.surfaces` documents the definitions).
 """
 
@@ -39,13 +40,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, or auto")
     p.add_argument("--no-surfaces", action="store_true", help="skip the surface metrics (Chamfer, F-score); Dice is still computed")
     p.add_argument("--grid-factor", type=int, default=2, help="surface grids at this multiple of the voxel resolution (default 2)")
+    p.add_argument("--keep-shells", action="store_true",
+                   help="score the model's labels and surfaces as they are, without relabelling partial-volume shells "
+                        "(thin layers of a material between a lower and a higher one; see kneas_method.evaluation.partial_volume)")
     p.add_argument("--air-threshold", type=float, default=0.5, help="total selector weight below which a point is air (default 0.5)")
     p.add_argument("--figure-views", type=int, default=3, help="held-out views drawn as figures (default 3; 0 = none)")
     p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
     return p
 
 
-def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, air_threshold: float = 0.5):
+def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, air_threshold: float = 0.5, shells: bool = True):
     """``(metrics dict, projections [N, nV, nU], volume [nx, ny, nz] or None)`` of a loaded run."""
     from ..engine.evaluate import evaluate_model, evaluate_volume
 
@@ -58,7 +62,8 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
         from ..evaluation.surfaces import material_metrics
 
         metrics["materials"] = material_metrics(run.model, run.scene, factor=grid_factor, air_threshold=air_threshold,
-                                                surfaces=surfaces and run.scene.membership is not None, progress=_say)
+                                                surfaces=surfaces and run.scene.membership is not None, shells=shells,
+                                                progress=_say)
     elif run.scene.labels is not None and vol is not None:
         from ..evaluation.surfaces import volume_material_metrics
 
@@ -114,7 +119,7 @@ def main(argv=None) -> None:
         out = output_folder(run.run_dir, args.output, f"eval-{timestamp()}")
         t0 = time.perf_counter()
         metrics, proj, vol = evaluate_run(run, device=device, surfaces=not args.no_surfaces, grid_factor=args.grid_factor,
-                                          air_threshold=args.air_threshold)
+                                          air_threshold=args.air_threshold, shells=not args.keep_shells)
         report = {
             "method": run.config.method,
             "run_dir": str(run.run_dir),

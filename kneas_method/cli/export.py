@@ -49,7 +49,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--min-fragment", type=float, default=64.0,
                    help="drop connected pieces smaller than this: triangles if >= 1, fraction of the mesh if < 1 (default 64)")
     m.add_argument("--surface", choices=("raw", "visible"), default="raw",
-                   help="raw: zero level set of each d_k (default); visible: only where the selector shows material k")
+                   help="raw: zero level set of each d_k (default); visible: only where the selector shows material k, "
+                        "partial-volume shells relabelled (the surfaces kneas-eval scores)")
     m.add_argument("--threshold", type=float, action="append", default=None, metavar="MU",
                    help="methods without an SDF (naf, fdk): attenuation iso-level(s), data units; repeatable (default: Otsu)")
 

@@ -51,6 +51,13 @@ labels against ``scene.labels`` (the exact membership at voxel centres).
   instead would score surfaces hidden inside higher materials, where the
   projections do not constrain ``d_k`` at all.
 
+**Partial-volume shells** (``shells=True``, the default for models): before scoring, the
+pieces of a material that are nowhere thicker than about 1.5 voxels and lie between a lower
+and a higher label (an edge's intermediate attenuation, not a layer of that material) take,
+cell by cell, the neighbouring label whose level is nearest the attenuation there, on the
+voxel grid (Dice) and on the surface grid (the fields are moved to agree); see
+:mod:`kneas_method.evaluation.partial_volume`. The counts moved are in ``shell_cells_moved``.
+
 Both point sets are padded by an outside layer so surfaces touching the volume
 border close. Per label: Chamfer distance (symmetric and both directions, mm,
 :func:`metrics.chamfer_distance`) and F-score with precision/recall at one
@@ -69,6 +76,7 @@ import torch
 
 from ..errors import KneasError
 from .metrics import chamfer_distance, dice_per_label, fscore, surface_points_from_labels
+from .partial_volume import relabel_fields, relabel_shells, shell_counts
 
 DEFAULT_AIR_THRESHOLD = 0.5
 DEFAULT_CHUNK = 65536
@@ -214,6 +222,20 @@ def material_mean_attenuation(mu_materials: np.ndarray, weights: np.ndarray, lab
     return out
 
 
+def voxel_labels(q: dict, air_threshold: float = DEFAULT_AIR_THRESHOLD, *, shells: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A model's material labels on a grid, from its query there (``mu``, ``weights``,
+    ``mu_materials``; :func:`query_grid`): ``(labels [...] uint8, mean attenuation [K], moved)``.
+    Labels are :func:`labels_from_weights`, with partial-volume shells relabelled when ``shells``
+    (:mod:`kneas_method.evaluation.partial_volume`; the grid is taken as the voxel grid); ``moved``
+    counts the cells moved out of each material (``{"k": n}``)."""
+    labels = labels_from_weights(q["weights"], air_threshold)
+    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], labels, mu=q.get("mu"))
+    if not shells:
+        return labels, mean_mu, {}
+    cleaned = relabel_shells(labels, q["mu"], mean_mu, 1)
+    return cleaned, mean_mu, {str(k): n for k, n in shell_counts(labels, cleaned).items()}
+
+
 AIR_LEVEL = 0.0  # the attenuation of air (label 0), data units
 
 
@@ -244,6 +266,33 @@ def visible_fields(distances: np.ndarray) -> np.ndarray:
         else:
             cover = -d[..., k]
     return e
+
+
+def visible_labels(fields: np.ndarray) -> np.ndarray:
+    """Labels ``[...]`` uint8 of visible-region fields ``[..., K]`` (:func:`visible_fields`): ``1 + k``
+    where ``e_k < 0``, 0 (air) where none is."""
+    neg = np.asarray(fields) < 0
+    return np.where(neg.any(-1), np.argmax(neg, -1) + 1, 0).astype(np.uint8)
+
+
+def shell_free_fields(model, geometry, levels: Sequence[float], voxel_geometry, *, chunk: int = DEFAULT_CHUNK,
+                      moved: Optional[dict] = None) -> np.ndarray:
+    """Visible-region fields ``[nx, ny, nz, K]`` of ``model`` on ``geometry``'s grid with its
+    partial-volume shells relabelled (:mod:`kneas_method.evaluation.partial_volume`).
+
+    Args:
+        levels: ``[K]`` the materials' attenuations (data units; :func:`material_mean_attenuation`).
+        voxel_geometry: the scene's grid, whose voxel sets the shells' scale on this grid.
+        moved: if given, ``moved["cells"]`` is set to the cells moved out of each material.
+    """
+    f = query_grid(model, geometry, keys=("distances", "mu"), chunk=chunk)
+    e = visible_fields(f["distances"])
+    labels = visible_labels(e)
+    cells_per_voxel = max(1, int(round(min(voxel_geometry.d_voxel) / min(geometry.d_voxel))))
+    cleaned = relabel_shells(labels, f["mu"], levels, cells_per_voxel)
+    if moved is not None:
+        moved["cells"] = {str(k): n for k, n in shell_counts(labels, cleaned).items()}
+    return relabel_fields(e, labels, cleaned)
 
 
 def _sdf_surface_points(field: np.ndarray, geometry) -> np.ndarray:
@@ -306,6 +355,7 @@ def material_metrics(
     air_threshold: float = DEFAULT_AIR_THRESHOLD,
     chunk: int = DEFAULT_CHUNK,
     surfaces: bool = True,
+    shells: bool = True,
     progress: Optional[Callable[[str], None]] = None,
 ) -> dict[str, Any]:
     """Per-material label Dice and surface errors of an SDF model (module docs).
@@ -317,6 +367,8 @@ def material_metrics(
         factor: fine-grid factor for the surfaces (2 = twice the voxel resolution).
         air_threshold: total weight below which a point is air.
         surfaces: also compute Chamfer/F-score (needs ``scene.membership``).
+        shells: relabel partial-volume shells, on the voxel grid and on the surface grid
+            (:mod:`kneas_method.evaluation.partial_volume`); False scores the fields as they are.
         progress: called with one line as each phase starts (None: silent).
 
     Returns:
@@ -335,17 +387,26 @@ def material_metrics(
     q = query_grid(model, geo, keys=("mu", "weights", "mu_materials"), chunk=chunk)
     if "weights" not in q:
         raise KneasError("the model's query gives no material weights; it has no materials")
-    pred = labels_from_weights(q["weights"], air_threshold)
-    mean_mu = material_mean_attenuation(q["mu_materials"], q["weights"], pred, mu=q.get("mu"))
+    pred, mean_mu, moved_voxels = voxel_labels(q, air_threshold, shells=shells)
+    moved: dict[str, dict] = {"voxels": moved_voxels} if shells else {}
     del q
 
     def visible(fgeo):  # [..., K] fields negative where each material is the visible one
-        return visible_fields(query_grid(model, fgeo, keys=("distances",), chunk=chunk)["distances"])
+        if not shells:
+            return visible_fields(query_grid(model, fgeo, keys=("distances",), chunk=chunk)["distances"])
+        fine_moved: dict = {}
+        e = shell_free_fields(model, fgeo, mean_mu, geo, chunk=chunk, moved=fine_moved)
+        moved["surface_grid_cells"] = fine_moved["cells"]
+        return e
 
     definition = ("labels: 1+argmax weight, air where total weight < air_threshold; predicted material k -> GT label with the "
                   "nearest attenuation level (air at 0 included) to the mean predicted attenuation mu where it is the label; surfaces: visible-region SDF "
                   "e_k = max(d_k, max_{j>k} -d_j) vs exact membership, marching cubes on a grid refined by grid_factor, mm")
-    settings = {"air_threshold": float(air_threshold), "grid_factor": int(factor)}
+    if shells:
+        definition += ("; partial-volume shells (the thin cells of a material's pieces nowhere thicker than 1.5 voxels, with a "
+                       "lower and a higher label within one voxel) relabelled to the neighbouring label of the nearest level, on both grids")
+    settings = {"air_threshold": float(air_threshold), "grid_factor": int(factor), "shells_relabelled": bool(shells),
+                "shell_cells_moved": moved}
     return _score_materials(scene, pred, mean_mu, visible if surfaces else None, fine=factor, definition=definition,
                             settings=settings, progress=say)
 
@@ -374,7 +435,7 @@ def threshold_fields(volume, boundaries: Sequence[float], air_cut: float) -> np.
 
 
 def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int = 4, k_rule: str = "bic", min_std: float = 0.0,
-                            restarts: int = 1, surfaces: bool = True) -> dict[str, Any]:
+                            restarts: int = 1, surfaces: bool = True, shells: bool = False) -> dict[str, Any]:
     """Per-material Dice and surface errors of a voxel volume [nx, ny, nz] (data units; a
     classical reconstruction or a NAF field sampled at the voxel centres), segmented the way a
     user would: thresholds at the automatic GMM bounds fitted on the volume itself
@@ -382,7 +443,10 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     at least ``min_std`` wide, the best of ``restarts`` starts; the defaults are the paper's rule), air below half
     the lowest class mean. Classes are matched to ground-truth labels like a model's materials;
     surfaces are the iso-surfaces of the thresholds (marching cubes of :func:`threshold_fields`
-    on the voxel grid). Same keys as :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
+    on the voxel grid). ``shells`` relabels the thresholded volume's partial-volume shells as
+    :func:`material_metrics` does a model's (off by default: thresholding is what a user of a
+    classical volume does; ``benchmarks/classical.py --shells`` scores both ways). Same keys as
+    :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
     from ..bounds import GMMBounds
 
     _check_labels(scene)
@@ -398,11 +462,19 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     mean_mu = np.array([float(vol[pred == k + 1].mean()) if (pred == k + 1).any() else float(gmm.means_[k])
                         for k in range(K)])
     fields = threshold_fields(vol, boundaries, air_cut)
+    moved: dict[str, dict] = {}
+    if shells:
+        cleaned = relabel_shells(pred, vol, mean_mu, 1)
+        moved["voxels"] = {str(k): n for k, n in shell_counts(pred, cleaned).items()}
+        fields = relabel_fields(fields, pred, cleaned)
+        pred = cleaned
     definition = (f"labels: thresholds at the GMM bounds fitted on the volume (K = 1..{max_components} by {k_rule}, min_std {min_std:g}, "
                   f"{restarts} start(s)), air below half the lowest class mean; "
+                  + ("partial-volume shells relabelled as for a model's; " if shells else "") +
                   "class k -> GT label with the nearest attenuation level (air at 0 included) to the class's mean mu; surfaces: iso-surfaces of the "
                   "thresholds (marching cubes on the voxel grid) vs exact membership on a grid refined by 2, mm")
     settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_),
+                "shells_relabelled": bool(shells), "shell_cells_moved": moved,
                 "gmm": {"max_components": max_components, "k_rule": k_rule, "k_rule_used": gmm.k_rule_used_, "min_std": min_std,
                         "restarts": int(restarts)}}
     return _score_materials(scene, pred, mean_mu, (lambda fgeo: fields) if surfaces else None, fine=2,

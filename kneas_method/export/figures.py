@@ -82,7 +82,7 @@ def export_figures(
     has them already); otherwise they are computed.
     """
     from ..engine.evaluate import render_views
-    from ..evaluation.surfaces import labels_from_weights, query_grid
+    from ..evaluation.surfaces import query_grid, voxel_labels
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -108,7 +108,7 @@ def export_figures(
                                                   title=f"{title}, held-out view {int(i)}"))
     weights = None
     if run.model is not None:
-        q = query_grid(run.model, scene.geometry, keys=("mu", "weights"), chunk=chunk)
+        q = query_grid(run.model, scene.geometry, keys=("mu", "weights", "mu_materials"), chunk=chunk)
         if volume is None:
             volume = q["mu"]
         weights = q.get("weights")
@@ -117,6 +117,6 @@ def export_figures(
     written.append(plot_slice_comparison(volume, scene.image, out / "slices.png", title=f"{title}: attenuation (data units)"))
     if weights is not None:
         written.append(plot_weight_maps(weights, out / "weights.png", title=f"{title}: selector weights per material"))
-        written.append(plot_label_maps(labels_from_weights(weights), scene.labels, out / "labels.png",
-                                       title=f"{title}: material labels (0 = air)"))
+        written.append(plot_label_maps(voxel_labels(q)[0], scene.labels, out / "labels.png",
+                                       title=f"{title}: material labels (0 = air; partial-volume shells relabelled)"))
     return written

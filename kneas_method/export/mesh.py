@@ -6,7 +6,9 @@ What is extracted
   the zero level set of ``d_k`` (``surface="raw"``, default: the model's whole
   surface of material ``k``, e.g. the skin for soft tissue) or of the visible
   region ``e_k = max(d_k, max_{j>k} -d_j)`` (``surface="visible"``: where the
-  selector shows material ``k``; see :mod:`kneas_method.evaluation.surfaces`).
+  selector shows material ``k``, with partial-volume shells relabelled as evaluation
+  does; see :mod:`kneas_method.evaluation.surfaces` and
+  :mod:`kneas_method.evaluation.partial_volume`).
 * Methods with no SDF (``naf``, ``fdk``): iso-surfaces of the attenuation
   ``mu = threshold`` for each threshold (data units); the default threshold is
   Otsu's on the attenuation grid, and the report says it was thresholded.
@@ -275,7 +277,7 @@ def sample_fields(run, resolution: int = DEFAULT_RESOLUTION, *, surface: str = "
     Returns ``(grid_geometry, fields [nx, ny, nz, C] float32, kind)``: ``kind`` is
     ``"sdf"`` (C = K distance fields, model units) or ``"attenuation"`` (C = 1, data units).
     """
-    from ..evaluation.surfaces import grid_points, query_grid, visible_fields
+    from ..evaluation.surfaces import grid_points, query_grid, shell_free_fields, visible_fields
 
     if surface not in SURFACES:
         raise KneasError(f"--surface {surface!r} is unknown; choose one of {', '.join(SURFACES)}")
@@ -293,6 +295,9 @@ def sample_fields(run, resolution: int = DEFAULT_RESOLUTION, *, surface: str = "
             return grid, vol[..., None], "attenuation"
         return geo, vol[..., None], "attenuation"
     grid, _ = grid_points(geo, resolution=resolution)
+    levels = material_levels(run, chunk=chunk)[1] if run.has_surfaces and surface == "visible" and run.model.num_materials > 1 else None
+    if levels is not None:
+        return grid, shell_free_fields(run.model, grid, levels, geo, chunk=chunk), "sdf"
     if run.has_surfaces:
         d = query_grid(run.model, grid, keys=("distances",), chunk=chunk)["distances"]
         return grid, (visible_fields(d) if surface == "visible" else d), "sdf"
@@ -345,16 +350,22 @@ def outer_layers(labels: np.ndarray, mean_mu: Sequence[float], *, core_fraction:
     return out
 
 
-def outer_layers_of_run(run, chunk: int = 65536) -> list[int]:
-    """:func:`outer_layers` of a run with a K-material selector, from its labels and mean
-    attenuations on the scene's voxel grid (the grid evaluation scores)."""
-    from ..evaluation.surfaces import labels_from_weights, material_mean_attenuation, query_grid
+def material_levels(run, chunk: int = 65536) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+    """``(labels [X, Y, Z], mean attenuation [K])`` of a run with a K-material selector on the
+    scene's voxel grid (the grid evaluation scores); ``(None, None)`` without one."""
+    from ..evaluation.surfaces import query_grid, voxel_labels
 
     q = query_grid(run.model, run.scene.geometry, keys=("mu", "weights", "mu_materials"), chunk=chunk)
     if "weights" not in q or "mu_materials" not in q:
-        return []
-    labels = labels_from_weights(q["weights"])
-    return outer_layers(labels, material_mean_attenuation(q["mu_materials"], q["weights"], labels, q["mu"]))
+        return None, None
+    labels, levels, _ = voxel_labels(q, shells=False)  # the rim is a whole material: judged on the labels as they are
+    return labels, levels
+
+
+def outer_layers_of_run(run, chunk: int = 65536) -> list[int]:
+    """:func:`outer_layers` of a run with a K-material selector (:func:`material_levels`)."""
+    labels, levels = material_levels(run, chunk=chunk)
+    return [] if labels is None else outer_layers(labels, levels)
 
 
 def default_threshold(mu: np.ndarray) -> float:

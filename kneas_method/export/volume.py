@@ -104,24 +104,25 @@ def _importable(module: str) -> bool:
     return True
 
 
-def reconstruct(run, *, chunk: int = 65536) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
-    """``(mu [nx, ny, nz] data units, weights [nx, ny, nz, K] or None, mu_materials or None)``
-    of a loaded run at its scene's voxel centres."""
+def reconstruct(run, *, chunk: int = 65536) -> dict[str, np.ndarray]:
+    """``{"mu": [nx, ny, nz] data units, and for a model with materials "weights" [nx, ny, nz, K]
+    and "mu_materials"}`` of a loaded run at its scene's voxel centres."""
     if run.model is None:
-        return np.asarray(run.volume, dtype=np.float32), None, None
+        return {"mu": np.asarray(run.volume, dtype=np.float32)}
     from ..evaluation.surfaces import query_grid
 
-    q = query_grid(run.model, run.scene.geometry, keys=("mu", "weights", "mu_materials"), chunk=chunk)
-    return q["mu"], q.get("weights"), q.get("mu_materials")
+    return query_grid(run.model, run.scene.geometry, keys=("mu", "weights", "mu_materials"), chunk=chunk)
 
 
-def label_volume(mu: np.ndarray, weights: Optional[np.ndarray], thresholds: Optional[Sequence[float]] = None,
-                 air_threshold: float = 0.5) -> Optional[np.ndarray]:
-    """Material labels (uint8) from weights, or from attenuation thresholds (data units); None if neither."""
-    from ..evaluation.surfaces import labels_from_weights
+def label_volume(q: dict, thresholds: Optional[Sequence[float]] = None, air_threshold: float = 0.5) -> Optional[np.ndarray]:
+    """Material labels (uint8) of :func:`reconstruct`'s grids: from the weights with partial-volume
+    shells relabelled (the labels ``kneas-eval`` scores), or from attenuation thresholds (data
+    units); None if neither."""
+    from ..evaluation.surfaces import voxel_labels
 
-    if weights is not None:
-        return labels_from_weights(weights, air_threshold)
+    mu = q["mu"]
+    if "weights" in q and "mu_materials" in q:
+        return voxel_labels(q, air_threshold)[0]
     if thresholds:
         t = np.sort(np.asarray(thresholds, dtype=np.float64))
         return np.searchsorted(t, np.asarray(mu, dtype=np.float64), side="right").astype(np.uint8)
@@ -158,8 +159,9 @@ def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     geo = run.scene.geometry
-    mu, weights, _ = reconstruct(run, chunk=chunk)
-    labels = label_volume(mu, weights, thresholds, air_threshold)
+    q = reconstruct(run, chunk=chunk)
+    mu, weights = q["mu"], q.get("weights")
+    labels = label_volume(q, thresholds, air_threshold)
     aff = nifti_affine(run.scene)
     lps = world_affine_lps(run.scene)
     imported = run.scene.meta.get("world_affine_lps") is not None
@@ -184,7 +186,8 @@ def export_volume(run, out_dir, *, thresholds: Optional[Sequence[float]] = None,
         np.save(out / "labels.npy", labels)
         info["files"]["labels_npy"] = str(out / "labels.npy")
         info["labels"] = ("1 + argmax of the selector weights (materials in ascending attenuation), 0 = air where the "
-                          f"total weight < {air_threshold}") if weights is not None else \
+                          f"total weight < {air_threshold}; partial-volume shells relabelled (kneas_method.evaluation."
+                          "partial_volume), as kneas-eval scores them") if weights is not None else \
             f"number of thresholds {sorted(float(t) for t in thresholds)} (data units) the attenuation exceeds"
     else:
         info["notes"].append(f"{run.config.method} has no materials: no label volume (give --threshold to make one)")
