@@ -38,8 +38,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-#: A material's part thinner than this many voxels, sandwiched between a lower and a
-#: higher material, is a partial-volume shell.
+#: A material's core: its parts at least this many voxels thick (an opening by a cube this wide).
 SHELL_VOXELS = 1.5
 #: A piece of a material (26-connected) with fewer than this share of its cells in the
 #: core is nowhere thick: all of it is an edge.
@@ -96,34 +95,37 @@ def relabel_shells(labels: np.ndarray, mu: np.ndarray, levels: Sequence[float], 
             near[j] = _cube_max(lab == j, reach)
         return near[j]
 
+    core: dict[int, np.ndarray] = {}
     body: dict[int, np.ndarray] = {}
+
+    def core_of(j: int) -> np.ndarray:  # label j's parts at least SHELL_VOXELS thick (computed once)
+        if j not in core:
+            core[j] = _opening(lab == j, width)
+        return core[j]
 
     def body_of(j: int) -> np.ndarray:  # cells within one voxel of label j's core (computed once)
         if j not in body:
-            body[j] = _cube_max(_opening(lab == j, width), reach)
+            body[j] = _cube_max(core_of(j), reach)
         return body[j]
 
     out = lab.copy()
     for k in present:
-        if k == 0:
+        lower = [j for j in present if j != k and lv[j] < lv[k]]
+        higher = [j for j in present if j != k and lv[j] > lv[k]]
+        if k == 0 or not lower or not higher:
             continue
         region = lab == k
-        core = _opening(region, width)
-        thin = region & ~_cube_max(core, reach)  # more than one voxel from k's core
+        thin = region & ~body_of(k)  # more than one voxel from k's core
         if not thin.any():
             continue
         pieces, n = ndimage.label(region, structure=np.ones((3, 3, 3), bool))
-        coreless = np.bincount(pieces[core], minlength=n + 1) < CORE_SHARE * np.bincount(pieces.ravel(), minlength=n + 1)
+        coreless = np.bincount(pieces[core_of(k)], minlength=n + 1) < CORE_SHARE * np.bincount(pieces.ravel(), minlength=n + 1)
         coreless[0] = False
         coreless = coreless[pieces]
-        lower = [j for j in present if j != k and lv[j] < lv[k]]
-        higher = [j for j in present if j != k and lv[j] > lv[k]]
-        if not lower or not higher:
-            continue
         above = np.logical_or.reduce([near_of(j) for j in higher])
         below_material = [j for j in lower if j != 0]
         inside = np.logical_or.reduce([near_of(j) for j in below_material]) if below_material else np.zeros_like(region)
-        below = inside | near_of(0) if 0 in lower else inside
+        below = (inside | near_of(0)) if 0 in lower else inside
         # a piece with no core: between any lower and higher label; a thin part of a thick body:
         # between two materials only (at the object's surface a thin layer over a denser one is common)
         shell = thin & above & ((coreless & below) | inside)

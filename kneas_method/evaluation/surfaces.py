@@ -292,7 +292,7 @@ def shell_free_fields(model, geometry, levels: Sequence[float], voxel_geometry, 
     cleaned = relabel_shells(labels, f["mu"], levels, cells_per_voxel)
     if moved is not None:
         moved["cells"] = {str(k): n for k, n in shell_counts(labels, cleaned).items()}
-    return relabel_fields(e, labels, cleaned)
+    return relabel_fields(e, labels, cleaned, margin=0.5 * float(min(geometry.d_voxel)))  # signed distances: half a cell
 
 
 def _sdf_surface_points(field: np.ndarray, geometry) -> np.ndarray:
