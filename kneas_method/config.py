@@ -56,6 +56,23 @@ def to_dict(config: Any) -> Any:
     return config
 
 
+def _describe(hint: Any) -> str:
+    """A type hint in a config file's words: ``Optional[dict[str, int]]`` -> 'null or a mapping of settings'."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is type(None):
+        return "null"
+    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
+        return " or ".join(dict.fromkeys(_describe(a) for a in args))
+    if origin is typing.Literal:
+        return f"one of {list(args)}"
+    if origin in (tuple, list):
+        return "a list"
+    if origin is dict or hint is dict:
+        return 'a mapping of settings (a JSON object such as {"name": 1})'
+    words = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    return words.get(hint, getattr(hint, "__name__", str(hint)))
+
+
 def _coerce(value: Any, hint: Any, where: str) -> Any:
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)
@@ -69,7 +86,7 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
                 return _coerce(value, arg, where)
             except (ConfigError, TypeError, ValueError):
                 continue
-        raise ConfigError(f"config value {where} = {value!r} does not fit {hint}")
+        raise ConfigError(f"config value {where} = {value!r} must be {_describe(hint)}")
     if origin is typing.Literal:
         if value not in args:
             raise ConfigError(f"config value {where} = {value!r} must be one of {list(args)}")
@@ -117,7 +134,9 @@ def update_from_dict(config: Any, data: dict, where: str = "config") -> Any:
     changes = {}
     for key, value in data.items():
         if key not in names:
-            raise ConfigError(f"unknown setting {where}.{key}; known settings: {', '.join(sorted(names))}")
+            known = f"known settings: {', '.join(sorted(names))}" if names else "it takes no settings"
+            name = key if isinstance(key, str) and key.isprintable() and key.strip() == key and key else repr(key)
+            raise ConfigError(f"unknown setting {where}.{name}; {known}")
         current = getattr(config, key)
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             changes[key] = update_from_dict(current, value, f"{where}.{key}")

@@ -36,15 +36,36 @@ Quadrature = Literal["bins", "voxel-planes"]
 PAPER_LAMBDA_EIKONAL = 0.01  # λ_reg of SPEC §3, used when the config leaves it unset
 
 
-def build_component(group: str, name: str, options: Optional[dict] = None) -> InstantiateConfig:
-    """Config of the component registered as ``name`` in ``kneas.<group>``, with ``options`` applied."""
+def build_component(group: str, name: str, options: Optional[dict] = None, where: Optional[str] = None) -> InstantiateConfig:
+    """Config of the component registered as ``name`` in ``kneas.<group>``, with ``options`` applied.
+
+    ``where`` names the setting the options came from (``model.encoding_options``) in errors."""
     obj = registry.load(group, name)
     cfg = obj() if isinstance(obj, type) else dataclasses.replace(obj)
     if not isinstance(cfg, InstantiateConfig):
         raise ConfigError(f"the {group} entry point {name!r} is not a component config (an InstantiateConfig subclass)")
+    label = where or f"{group}:{name}"
+    if options is not None:
+        options = check_options(options, label)
     if options:
-        cfg = update_from_dict(cfg, _parse_option_strings(cfg, dict(options)), where=f"{group}:{name}")
+        cfg = update_from_dict(cfg, _parse_option_strings(cfg, options), where=label)
     return cfg
+
+
+def check_options(options: Any, where: str) -> dict:
+    """``options`` as a dict of setting name -> value, or a one-line ConfigError naming ``where`` and the fix.
+
+    A config file can hold anything at that place (a list, a string, an empty name), and the
+    command line gives what it was typed as; both are refused here before any dict() or lookup."""
+    example = 'a JSON object such as {"num_levels": 8} in a config file, or NAME VALUE pairs on the command line'
+    if not isinstance(options, dict):
+        raise ConfigError(f"{where} must be settings by name ({example}), got {options!r}")
+    for key, value in options.items():
+        if not isinstance(key, str) or not key.strip():
+            raise ConfigError(f"{where} has a setting with an empty name ({key!r}); give each setting its name ({example})")
+        if isinstance(value, (list, tuple, dict)):
+            raise ConfigError(f"{where}.{key} = {value!r}: a setting's value is one number, string or true/false ({example})")
+    return dict(options)
 
 
 def _parse_option_strings(cfg, options: dict) -> dict:
@@ -174,7 +195,7 @@ def field_has_surfaces(config: ModelConfig) -> bool:
     materials, bounds and meshes apply. Decided from the registered class, never the name."""
     from .fields.base import FieldConfig
 
-    cfg = build_component("fields", config.field, config.field_options)
+    cfg = build_component("fields", config.field, config.field_options, where="model.field_options")
     return bool(isinstance(cfg, FieldConfig) and cfg.has_surfaces)
 
 
@@ -197,9 +218,9 @@ class CTModel(nn.Module):
         # the attenuation unit the losses are measured in (data units per unit; engine.loss_scale): 1 for
         # NAF-normalised scans, larger for a scanner's units, so every loss weighs as on NAF's scale
         self.loss_scale = 1.0
-        enc_cfg = build_component("encodings", config.encoding, config.encoding_options)
+        enc_cfg = build_component("encodings", config.encoding, config.encoding_options, where="model.encoding_options")
         encoding = enc_cfg.setup(device=device) if device is not None else enc_cfg.setup()
-        field_cfg = build_component("fields", config.field, config.field_options)
+        field_cfg = build_component("fields", config.field, config.field_options, where="model.field_options")
         if not isinstance(config.num_materials, int) or isinstance(config.num_materials, bool):
             raise ConfigError(f"model.num_materials is {config.num_materials!r}; give a whole number of materials (--num-materials K)")
         K = config.num_materials
@@ -209,9 +230,9 @@ class CTModel(nn.Module):
         self.has_surfaces = self.field.has_surfaces
         self.bound = self.field.bound
         if self.has_surfaces:
-            att_cfg = build_component("attenuations", config.attenuation, config.attenuation_options)
+            att_cfg = build_component("attenuations", config.attenuation, config.attenuation_options, where="model.attenuation_options")
             self.attenuation = att_cfg.setup(feature_dim=self.field.feature_dim, num_materials=K)
-            self.selector = build_component("selectors", config.selector, config.selector_options).setup(num_materials=K)
+            self.selector = build_component("selectors", config.selector, config.selector_options, where="model.selector_options").setup(num_materials=K)
             from .fields.sdf_field import SurfaceBoundary
 
             self.boundary = SurfaceBoundary(config.s_init if config.s_init is not None else 20.0)

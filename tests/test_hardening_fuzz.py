@@ -22,7 +22,9 @@ from kneas_method.data.simulate import SimulationConfig, simulate_phantom
 from kneas_method.data.naf import scene_to_dict
 from kneas_method.errors import SceneError
 
-FUZZ = settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture,
+# derandomize: the same examples on every run of one hypothesis release; print_blob: a failure prints the
+# @reproduce_failure line that replays it exactly, and the config tests also print the file they ran
+FUZZ = settings(max_examples=150, deadline=None, derandomize=True, print_blob=True, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                          HealthCheck.too_slow])
 MARKER = "KNEAS_FUZZ_PWNED"
 
@@ -237,7 +239,7 @@ def inspect_cli(path, capsys):
     return exc.value.code, out.out, out.err
 
 
-@settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=40, deadline=None, derandomize=True, print_blob=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_kneas_data_inspect_on_damaged_pickles(valid_bytes, base_dict, fuzz_dir, capsys, data):
     if data.draw(st.booleans(), label="bytes?"):
@@ -297,16 +299,20 @@ def dry_run_cli(path, capsys):
 
 
 def check_dry_run(path, capsys):
+    """The dry run on ``path`` ends in ``parameters:`` or one line ``error: ...``; a failure shows the
+    file's text, so ``kneas-train --config FILE --dry-run`` on it reproduces it."""
     code, out, err = dry_run_cli(path, capsys)
-    assert code in (0, 2), (code, out, err)
-    assert "Traceback" not in out + err
+    shown = f"config file that fails:\n{path.read_text()}\n--- output:\n{out}{err}"
+    assert code in (0, 2), shown
+    assert "Traceback" not in out + err, shown
     if code == 0:
-        assert "parameters:" in out
+        assert "parameters:" in out, shown
     else:
-        assert err.strip().startswith("error:"), err
+        line = err.strip()
+        assert line.startswith("error:") and len(line.splitlines()) == 1, shown
 
 
-@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=150, deadline=None, derandomize=True, print_blob=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_mutated_config_files_dry_run(base_config, fuzz_dir, capsys, data):
     cfg = copy.deepcopy(base_config)
@@ -337,7 +343,7 @@ def test_mutated_config_files_dry_run(base_config, fuzz_dir, capsys, data):
     check_dry_run(path, capsys)
 
 
-@settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=60, deadline=None, derandomize=True, print_blob=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(blob=st.one_of(JSON_VALUES.map(json.dumps), st.text(max_size=40), st.binary(max_size=40)))
 def test_random_config_files_dry_run(fuzz_dir, capsys, blob):
     path = fuzz_dir / "random.json"

@@ -20,7 +20,9 @@ def run_cli(main: Callable[[], int | None]) -> None:
     try:
         code = main()
     except KneasError as exc:
-        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        # one line whatever the message quotes (a config key or a file name may hold a line break)
+        message = str(exc).replace("\r", "\\r").replace("\n", "\\n")
+        err_console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
         sys.exit(EXIT_USER_ERROR)
     except KeyboardInterrupt:
         err_console.print("interrupted")
@@ -79,6 +81,58 @@ def _flags(config, prefix: str = "") -> set[str]:
     return out
 
 
+def _settings_flags(config, prefix: str = "") -> set[str]:
+    """The ``--flags`` of a config's dict-typed fields (``--model.encoding-options``): each takes
+    NAME VALUE pairs on the command line."""
+    import typing
+
+    out: set[str] = set()
+    hints = typing.get_type_hints(type(config))
+    for f in dataclasses.fields(config):
+        name = prefix + f.name.replace("_", "-")
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            out |= _settings_flags(value, name + ".")
+            continue
+        hint = hints.get(f.name)
+        kinds = typing.get_args(hint) if typing.get_origin(hint) is typing.Union else (hint,)
+        if any(k is dict or typing.get_origin(k) is dict for k in kinds):
+            out.add("--" + name)
+    return out
+
+
+def check_settings_pairs(argv: list[str], flags: set[str], prog: str) -> None:
+    """Refuse, in one line naming the flag and the fix, a malformed ``--X-options`` value list:
+    ``NAME=VALUE`` instead of ``NAME VALUE``, a name with no value, an empty name, a name given twice.
+    (tyro's own message for these is a paragraph that names no fix.)"""
+    i = 0
+    while i < len(argv):
+        flag, eq, first = argv[i].partition("=")
+        if flag not in flags:
+            i += 1
+            continue
+        values = [first] if eq else []
+        i += 1
+        while i < len(argv) and not argv[i].startswith("--"):
+            values.append(argv[i])
+            i += 1
+        form = f"{flag} NAME VALUE [NAME VALUE ...]"
+        if values == ["None"]:
+            continue
+        for token in values[0::2]:
+            if "=" in token:
+                name, _, value = token.partition("=")
+                raise KneasError(f"{prog}: {flag} {token!r}: a setting is NAME VALUE with a space: {flag} {name} {value}")
+            if not token.strip():
+                raise KneasError(f"{prog}: {flag} has an empty setting name; give {form}")
+        if len(values) % 2:
+            raise KneasError(f"{prog}: {flag}: the setting {values[-1]!r} has no value; give {form}")
+        names = values[0::2]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise KneasError(f"{prog}: {flag} gives {', '.join(twice)} more than once; keep one value for each setting")
+
+
 def tyro_cli(defaults: dict, descriptions: dict, argv: list[str], *, prog: str, description: str, what: str):
     """``tyro.cli`` over subcommands ``defaults`` (name -> config), with one-line errors: an
     unknown subcommand or option names the closest valid ones; any other parsing error is
@@ -99,6 +153,7 @@ def tyro_cli(defaults: dict, descriptions: dict, argv: list[str], *, prog: str, 
             if flag.startswith("--") and flag not in known:
                 raise KneasError(f"{prog} {argv[0]}: unknown option {flag}{did_you_mean(flag, known)} "
                                  f"({prog} {argv[0]} --help lists the options)")
+        check_settings_pairs(argv[1:], _settings_flags(defaults[argv[0]]), f"{prog} {argv[0]}")
     sub = tyro.extras.subcommand_type_from_defaults(defaults, descriptions)
     captured = io.StringIO()
     try:

@@ -150,13 +150,23 @@ def _drop_other_kind(base, data: dict) -> dict:
     return {k: v for k, v in data.items() if k not in neural}
 
 
+def _unique_keys(pairs: list) -> dict:
+    """A JSON object's pairs -> dict, refusing a key given twice (``json`` would keep the last silently)."""
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"the setting {key!r} is given twice in one object; keep one of them")
+        out[key] = value
+    return out
+
+
 def read_config_file(path: Union[str, Path]):
     """A run config from a JSON file (``kneas-train --config FILE``)."""
     path = Path(path)
     if not path.is_file():
         raise KneasError(f"config file {path} does not exist; give the config.json of a run folder")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
     except (OSError, ValueError) as exc:
         raise KneasError(f"config file {path} is not valid JSON ({exc}); fix or regenerate it") from None
     return config_from_dict(data, str(path))
@@ -169,7 +179,7 @@ def read_run_config(run_dir: Path):
         raise KneasError(f"{run_dir} has no config.json, so it is not a kneas run folder; give the folder kneas-train "
                          "wrote (DIR/<scene>/<method>/<timestamp>: it says 'run folder: ...' when it starts)")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
     except (OSError, ValueError) as exc:
         raise KneasError(f"{path} is not valid JSON ({exc}); the run folder is damaged, train the run again") from None
     return config_from_dict(data, str(path))
