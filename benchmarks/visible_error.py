@@ -58,7 +58,7 @@ def summary(curve: list[float]) -> dict:
 
 def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
     from kneas_method.classical.projector import Projector
-    from kneas_method.correction import box_mean, discretisation_error, edge_band, fine_geometry
+    from kneas_method.correction import box_mean, discretisation_error, edge_band
     from kneas_method.data.phantoms import PHANTOM_NAMES, get_phantom
     from kneas_method.engine.evaluate import sample_volume
     from kneas_method.engine.loading import load_run
@@ -78,7 +78,7 @@ def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
     v = torch.as_tensor(np.asarray(sample_volume(loaded.model, geometry), dtype=np.float32))
     b = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32))
     A = Projector(geometry, scene.train.angles)
-    A_fine = Projector(fine_geometry(geometry, fine), scene.train.angles)
+    A_fine = Projector(geometry.refined(fine), scene.train.angles)
     e = v - gt_t
     band = edge_band(v)
     A_gt = A.forward(gt_t)
@@ -94,7 +94,7 @@ def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
            "band_voxels": round(float(band.float().mean()), 4),
            "band_error_share": round(float((e * e)[band].sum() / (e * e).sum()), 4)}
     if phantom is not None:
-        gt_fine = torch.as_tensor(phantom.volume(fine_geometry(geometry, fine), supersample=2))
+        gt_fine = torch.as_tensor(phantom.volume(geometry.refined(fine), supersample=2))
         A_fine_gt = A_fine.forward(gt_fine)
         d_exact = A_fine_gt - A.forward(box_mean(gt_fine, fine))
         residuals["data_exact_discretisation"] = b - d_exact - A_v

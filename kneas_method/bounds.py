@@ -491,12 +491,6 @@ class GMMBounds:
         x = np.asarray(x, dtype=np.float64)
         return sum(w * _normal_pdf(x, m, s) for w, m, s in zip(self.weights_, self.means_, self.stds_))
 
-    @property
-    def bounds_(self) -> Bounds:
-        """The fitted bounds as a validated :class:`Bounds`."""
-        self._check_fitted()
-        return Bounds(tuple(float(v) for v in self.alphas_), tuple(float(v) for v in self.betas_))
-
     def to_dict(self) -> dict:
         """JSON-able summary: K, alphas, betas, boundaries, bic, means, stds, weights,
         warnings, settings (all attenuations in data units)."""

@@ -48,7 +48,7 @@ import torch.nn.functional as F
 
 from .errors import KneasError
 
-__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "fine_geometry", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
+__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
@@ -98,12 +98,6 @@ def box_mean(volume: torch.Tensor, f: int) -> torch.Tensor:
     """Mean over ``f^3`` blocks: [f nx, f ny, f nz] -> [nx, ny, nz]."""
     nx, ny, nz = (n // f for n in volume.shape)
     return volume.reshape(nx, f, ny, f, nz, f).mean((1, 3, 5))
-
-
-def fine_geometry(geometry, f: int):
-    """The same volume box with ``f`` times more voxels per axis."""
-    return dataclasses.replace(geometry, n_voxel=tuple(n * f for n in geometry.n_voxel),
-                               d_voxel=tuple(d / f for d in geometry.d_voxel))
 
 
 def noise_variance(residual: torch.Tensor) -> float:
@@ -179,7 +173,7 @@ def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch
                          "holds; use --trainer.correction-passes 0 or a coarser reconstruction grid")
     index = torch.full(grid.shape, -1, dtype=torch.int32, device=band.device)  # half of int64's memory (0.5 GB at 512^3)
     index[grid] = torch.arange(len(cells), dtype=torch.int32, device=band.device)
-    axes = fine_geometry(geometry, c).voxel_axes(device=band.device)
+    axes = geometry.refined(c).voxel_axes(device=band.device)
     table = []
     for i in range(0, len(cells), QUERY_CHUNK):
         j = cells[i:i + QUERY_CHUNK]
@@ -259,7 +253,7 @@ def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tens
     idx = fine_band.nonzero()
     index, table = band_fields(model, geometry, band, coarse)
     K = table.shape[1] // 2
-    axes = fine_geometry(geometry, fine).voxel_axes(device=volume.device)
+    axes = geometry.refined(fine).voxel_axes(device=volume.device)
     boundary = model.boundary
     saved = boundary.log_s.data.clone()
     boundary.log_s.data += math.log(sharpen) / boundary.LOG_SCALE
@@ -353,7 +347,7 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
 
     def projector(f: int):
         if f not in projectors:
-            projectors[f] = Projector(geometry if f == 1 else fine_geometry(geometry, f), angles, device=volume.device)
+            projectors[f] = Projector(geometry.refined(f), angles, device=volume.device)
         return projectors[f]
 
     A = projector(1)

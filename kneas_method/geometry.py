@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from .errors import SceneError
+from .errors import KneasError, SceneError
 
 MM_PER_M = 1000.0
 NEAR_FAR_TOLERANCE = 0.005  # model units, as SPEC §1 (and NAF) use
@@ -126,19 +126,20 @@ class Geometry:
         size = [n * d for n, d in zip(self.n_detector, self.d_detector)]
         return replace(self, n_detector=tuple(n_detector), d_detector=tuple(s / n for s, n in zip(size, n_detector)))
 
+    def refined(self, factor: int) -> "Geometry":
+        """The same volume box with every voxel split into ``factor^3`` cells (``factor`` >= 1)."""
+        factor = int(factor)
+        if factor < 1:
+            raise KneasError(f"grid factor must be a positive integer, got {factor}")
+        if factor == 1:
+            return self
+        return replace(self, n_voxel=tuple(n * factor for n in self.n_voxel), d_voxel=tuple(d / factor for d in self.d_voxel))
+
     # ------------------------------------------------------------ conversions
     @property
     def mm_per_unit(self) -> float:
         """Millimetres per model unit."""
         return MM_PER_M / self.scale
-
-    def mu_model_to_data(self, mu_model):
-        """Attenuation [1/model unit] -> data units [1/m] (``* scale``)."""
-        return mu_model * self.scale
-
-    def mu_data_to_model(self, mu_data):
-        """Attenuation in data units [1/m] -> [1/model unit] (``/ scale``)."""
-        return mu_data / self.scale
 
     def model_to_mm(self, points):
         """Points in model units -> mm (same frame; works on numpy and torch)."""

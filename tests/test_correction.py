@@ -14,8 +14,8 @@ import torch
 
 from conftest import exact_sphere_model, run, run_dir_of, sphere_scene, sphere_scene_file
 from kneas_method.classical.projector import Projector
-from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band, requery_band,
-                                     fine_geometry, gradient_weights, interpolate_fields, noise_variance)
+from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band, gradient_magnitude, requery_band,
+                                     gradient_weights, interpolate_fields, noise_variance)
 from kneas_method.data.simulate import SimulationConfig
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.errors import KneasError
@@ -104,7 +104,7 @@ def naive_discretisation_error(model, geometry, volume, band, A, A_fine, *, fine
     """Test oracle: the model queried at every fine centre of the band (twice as sharp edges)."""
     w = torch.nn.functional.interpolate(volume[None, None], scale_factor=fine, mode="trilinear", align_corners=False)[0, 0]
     fine_band = band.repeat_interleave(fine, 0).repeat_interleave(fine, 1).repeat_interleave(fine, 2)
-    points = fine_geometry(geometry, fine).voxel_centres().reshape(-1, 3)[fine_band.reshape(-1)]
+    points = geometry.refined(fine).voxel_centres().reshape(-1, 3)[fine_band.reshape(-1)]
     saved = model.boundary.log_s.data.clone()
     model.boundary.log_s.data += math.log(sharpen) / model.boundary.LOG_SCALE
     with torch.no_grad():
@@ -155,7 +155,7 @@ def test_discretisation_error_from_interpolated_fields_matches_querying_every_fi
     scene, model, v, b = _sphere_problem()
     geometry, angles = scene.geometry, scene.train.angles
     band = edge_band(v)
-    A, A_fine = Projector(geometry, angles), Projector(fine_geometry(geometry, 3), angles)
+    A, A_fine = Projector(geometry, angles), Projector(geometry.refined(3), angles)
     naive = naive_discretisation_error(model, geometry, v, band, A, A_fine, fine=3, sharpen=2.0)
     assert float(naive.abs().max()) > 0
     same_grid = discretisation_error(model, geometry, v, band, A, A_fine, fine=3, sharpen=2.0, coarse=3)
@@ -458,3 +458,12 @@ def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-weights", "gradient",
                           "--trainer.correction-ring", "0.5", "--dry-run"], capsys)
     assert code != 0 and "--trainer.correction-weights ring" in err and "Traceback" not in err  # the ring with the gradient rule
+
+
+def test_gradient_magnitude_is_the_central_difference_slope_per_voxel():
+    x, y, z = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")
+    ramp = torch.as_tensor(0.03 * x - 0.04 * z + 0.5)  # slope 0.05 per voxel
+    assert torch.allclose(gradient_magnitude(ramp), torch.full_like(ramp, 0.05), atol=1e-9)
+    smooth = np.sin(0.3 * x) * np.cos(0.2 * y) + 0.1 * z
+    naive = np.sqrt(sum(g ** 2 for g in np.gradient(smooth)))  # numpy's central differences, one-sided at the faces
+    assert np.allclose(gradient_magnitude(torch.as_tensor(smooth)).numpy(), naive, atol=1e-9)

@@ -5,7 +5,6 @@ import pytest
 
 from kneas_method.errors import KneasError
 from kneas_method.evaluation.surfaces import (
-    fine_geometry,
     gt_levels,
     labels_from_weights,
     map_labels,
@@ -124,7 +123,7 @@ def test_query_grid_chunks_agree(scene):
 
 
 def test_fine_grid_and_membership(scene):
-    fg = fine_geometry(scene.geometry, 2)
+    fg = scene.geometry.refined(2)
     assert fg.n_voxel == (32, 32, 32) and fg.scale == scene.geometry.scale
     assert np.allclose([n * d for n, d in zip(fg.n_voxel, fg.d_voxel)], [n * d for n, d in zip(scene.geometry.n_voxel, scene.geometry.d_voxel)])
     assert np.array_equal(membership_grid(scene, scene.geometry), scene.labels)

@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from kneas_method import presets, registry
 from kneas_method.data.naf import load_naf
-from kneas_method.engine.anchor import edge_trust, gradient_magnitude, label_interior
+from kneas_method.engine.anchor import edge_trust, label_interior
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.engine.loading import load_run
 from kneas_method.engine.trainer import Trainer
@@ -268,15 +268,6 @@ def test_fits_to_a_volume_query_only_the_grid_unless_told(small_scene, tmp_path,
     calls.clear()
     trainer.fit_to_volume(target, mask, steps=1, points_per_step=200, lr=1e-4)
     assert len(calls) == 1 and calls[0][1] is None
-
-
-def test_gradient_magnitude_is_the_slope_per_voxel():
-    x, y, z = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")
-    ramp = 0.03 * x - 0.04 * z + 0.5  # slope 0.05 per voxel
-    assert np.allclose(gradient_magnitude(ramp)[1:-1, 1:-1, 1:-1], 0.05, atol=1e-6)
-    smooth = np.sin(0.3 * x) * np.cos(0.2 * y) + 0.1 * z
-    naive = np.sqrt(sum(g ** 2 for g in np.gradient(smooth)))  # central differences, no smoothing
-    assert np.allclose(gradient_magnitude(smooth)[2:-2, 2:-2, 2:-2], naive[2:-2, 2:-2, 2:-2], atol=0.02)
 
 
 def test_edge_trust_is_one_where_flat_and_half_at_the_contrast_step():

@@ -55,6 +55,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..device import resolve_device
 from ..errors import ConfigError, KneasError
 from ..geometry import Geometry
 
@@ -253,9 +254,7 @@ def fdk_reconstruct(
         torch tensor on ``device`` with ``return_tensor=True``).
     """
     geometry, angles, projections = _resolve_inputs(source, angles, projections)
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise KneasError("FDK was asked to run on CUDA but no GPU is visible; use device='cpu'")
+    dev = resolve_device(device)
     ang = np.asarray(angles.detach().cpu() if hasattr(angles, "detach") else angles, dtype=np.float64).reshape(-1)
     proj = torch.as_tensor(projections, dtype=torch.float32).to(dev)
     nu, nv = geometry.n_detector

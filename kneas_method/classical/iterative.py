@@ -55,7 +55,8 @@ import torch
 
 from ..errors import ConfigError, KneasError
 from ..geometry import Geometry
-from .projector import Projector, VoxelBackprojector, _angles, check_projections, check_volume, resolve_device
+from ..device import resolve_device
+from .projector import Projector, VoxelBackprojector, _angles, check_projections, check_volume
 
 __all__ = ["sart", "os_sart", "cgls", "asd_pocs", "choose_backprojector", "pixels_per_voxel", "spread_order",
            "view_order", "interleaved_subsets", "total_variation", "tv_gradient", "ALGORITHMS"]

@@ -42,10 +42,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..device import resolve_device
 from ..errors import KneasError
 from ..geometry import Geometry
 
-__all__ = ["Projector", "VoxelBackprojector", "forward", "back", "resolve_device", "check_volume", "check_projections"]
+__all__ = ["Projector", "VoxelBackprojector", "forward", "back", "check_volume", "check_projections"]
 
 # Samples (rays x slices) per grid_sample call: bounds the grid to ~64 MB in float32.
 MAX_SAMPLES = 1 << 23
@@ -62,16 +63,6 @@ _TRANSVERSE = {0: (1, 2), 1: (0, 2), 2: (0, 1)}
 
 
 # ---------------------------------------------------------------- checks
-def resolve_device(device, like=None) -> torch.device:
-    """The work device: ``device``, else ``like``'s device if it is a tensor, else CPU."""
-    if device is None:
-        device = like.device if isinstance(like, torch.Tensor) else "cpu"
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise KneasError("the projector was asked to run on CUDA but no GPU is visible; use device='cpu'")
-    return dev
-
-
 def _work_dtype(x) -> torch.dtype:
     dt = x.dtype if isinstance(x, (torch.Tensor, np.ndarray)) else None
     return torch.float64 if dt in (torch.float64, np.float64, np.dtype("float64")) else torch.float32

@@ -94,7 +94,8 @@ def main(argv=None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
 
     def body() -> int:
-        from ..engine.loading import load_run, resolve_device
+        from ..device import resolve_device
+        from ..engine.loading import load_run
         from ..engine.run_dir import timestamp, write_json
 
         args = _parser().parse_args(argv)

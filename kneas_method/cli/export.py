@@ -75,7 +75,8 @@ def output_folder(run_dir: Path, output: Optional[str], default_name: str) -> Pa
 
 
 def _load(args):
-    from ..engine.loading import load_run, resolve_device
+    from ..device import resolve_device
+    from ..engine.loading import load_run
 
     run = load_run(args.run, scene=args.scene, device=resolve_device(args.device))
     what = f"checkpoint {run.checkpoint_path}" + (f" (step {run.step})" if run.step is not None else "") if run.checkpoint_path else "volume.npy"

@@ -19,6 +19,10 @@ import numpy as np
 
 from ..errors import KneasError, SceneError, missing_optional
 
+# the image files ITK reads (projections, volumes), by the ends of their names
+IMAGE_SUFFIXES = (".mha", ".mhd", ".nrrd", ".nhdr", ".tif", ".tiff", ".png", ".nii", ".nii.gz", ".dcm", ".his", ".hnd",
+                  ".xim", ".edf", ".vtk", ".hdr", ".bmp", ".jpg", ".jpeg")
+
 ITK_EXTRA = "scanner"
 
 

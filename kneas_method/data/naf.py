@@ -30,6 +30,7 @@ import numpy as np
 from ..atomic import atomic_write
 from ..errors import SceneError
 from ..geometry import Geometry
+from .itk_io import IMAGE_SUFFIXES
 from .scene import Scene, Views
 
 # Geometry keys (mm) that Geometry.from_mm takes.
@@ -140,8 +141,6 @@ def safe_load_pickle(path) -> Any:
         if isinstance(exc, SceneError):
             raise
         msg = " ".join(str(exc).split()) or type(exc).__name__
-        from .scanner_import import IMAGE_SUFFIXES
-
         if path.name.lower().endswith(IMAGE_SUFFIXES + (".xml", ".raw")):
             raise SceneError(f"{label} is not a scene pickle but an image or geometry file; make a scene from a scan first: "
                              f"kneas-data import PROJECTIONS --geometry geometry.xml -o scan.pickle") from None

@@ -53,6 +53,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import SceneError
+from .naf import atomic_write_bytes
 
 RTK_XML_VERSION = 3
 # kneas (x, y, z) -> RTK world LPS: x_w = y_k, y_w = z_k, z_w = x_k (a proper rotation).
@@ -325,8 +326,6 @@ def rtk_geometry_xml(geom: RTKGeometry) -> str:
 
 def write_rtk_geometry(geom: RTKGeometry, path) -> Path:
     """Write ``geom`` as RTK's geometry XML (atomically). Returns the path."""
-    from .naf import atomic_write_bytes
-
     path = Path(path)
     atomic_write_bytes(path, rtk_geometry_xml(geom).encode())
     return path

@@ -51,11 +51,11 @@ from .rtk_geometry import (
     rtk_rows_to_kneas,
     rtk_to_kneas,
 )
+from .itk_io import IMAGE_SUFFIXES
+from .naf import check_line_integrals
 from .scene import Scene, Views
 
 KINDS = ("auto", "counts", "normalized", "line-integrals")
-IMAGE_SUFFIXES = (".mha", ".mhd", ".nrrd", ".nhdr", ".tif", ".tiff", ".png", ".nii", ".nii.gz", ".dcm", ".his", ".hnd",
-                  ".xim", ".edf", ".vtk", ".hdr", ".bmp", ".jpg", ".jpeg")
 MIN_RATIO = 1e-6  # (I - dark)/(flat - dark) is clamped here: p <= ln(1e6) = 13.8
 BORDER_FRACTION = 0.05  # width of the border strip used to find air, as a fraction of each side
 DEFAULT_MAX_VOXELS = 256  # default grid: at most this many voxels along the largest side
@@ -570,7 +570,6 @@ def import_scan(
     flat_arr = read_field(flat, stack.grid, "flat") if flat is not None else None
     dark_arr = read_field(dark, stack.grid, "dark") if dark is not None else None
     p_rtk, conversion = to_line_integrals(stack.data, kind, flat=flat_arr, dark=dark_arr, i0=i0)
-    from .naf import check_line_integrals
 
     first = Path(stack.files[0]).name
     check_line_integrals(p_rtk, first if len(stack.files) == 1 else f"{first}..", "imported projections")

@@ -39,27 +39,10 @@ def label_interior(volume: np.ndarray, thresholds: Sequence[float], margin: int 
     return ndimage.maximum_filter(labels, size=size, mode="nearest") == ndimage.minimum_filter(labels, size=size, mode="nearest")
 
 
-def gradient_magnitude(volume: np.ndarray) -> np.ndarray:
-    """Per-voxel gradient magnitude (value units per voxel) by Sobel differences.
-
-    ``scipy.ndimage.sobel`` along an axis is the central difference (twice the slope) smoothed
-    by ``[1, 2, 1]`` along each other axis (a sum of 16), so it is divided by 32: a ramp of
-    slope ``g`` per voxel gives ``g``.
-
-    Args:
-        volume: ``[X, Y, Z]``.
-
-    Returns:
-        ``[X, Y, Z]`` float32, ``>= 0``.
-    """
-    v = np.asarray(volume, dtype=np.float32)
-    return (np.sqrt(sum(ndimage.sobel(v, axis) ** 2 for axis in range(3))) / 32.0).astype(np.float32)
-
-
 def edge_trust(volume: np.ndarray, contrast: float) -> np.ndarray:
     """How much each voxel's value of a reconstruction is trusted: ``1 / (1 + (g / g0)^2)``.
 
-    ``g`` is the voxel's gradient magnitude (:func:`gradient_magnitude`) and ``g0 = contrast x``
+    ``g`` is the voxel's central-difference gradient magnitude (``correction.gradient_magnitude``) and ``g0 = contrast x``
     the volume's 99.5th percentile, so the weight is 1 where the volume is flat and 1/2 where its
     values change by ``contrast`` of its range per voxel. A sparse-view reconstruction's error
     grows with its gradient (at the edges it blurs and shifts), and this weighs it as a Gaussian
@@ -77,7 +60,10 @@ def edge_trust(volume: np.ndarray, contrast: float) -> np.ndarray:
     g0 = float(contrast) * float(np.percentile(v, 99.5))
     if not g0 > 0:
         return np.ones(v.shape, dtype=np.float32)
-    return (1.0 / (1.0 + (gradient_magnitude(v) / g0) ** 2)).astype(np.float32)
+    from ..correction import gradient_magnitude
+
+    g = gradient_magnitude(torch.from_numpy(v)).numpy()
+    return (1.0 / (1.0 + (g / g0) ** 2)).astype(np.float32)
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 import torch
 
+from ..device import resolve_device
 from ..errors import CheckpointError, KneasError, SceneError
 
 RESUME_HINT = "training must finish, or be resumed with `kneas-train --resume {run}`"
@@ -44,23 +45,6 @@ def missing_hint(run_dir: Path) -> str:
 RESUME_SAFE = ("device", "resume", "dry_run", "trainer.eval_chunk")
 # keys of older config.json files, dropped (or mapped) on load
 _LEGACY_KEYS = ("reconstructor",)
-
-
-def resolve_device(name: str, flag: str = "--device") -> torch.device:
-    """``auto`` -> cuda if available else cpu; anything else as given, checked.
-
-    Raises:
-        KneasError: not a torch device, or CUDA asked for where there is none.
-    """
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError) as exc:
-        raise KneasError(f"{flag} {name!r} is not a torch device ({exc}); use auto, cpu or cuda") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise KneasError(f"{flag} {name!r} asked for but no CUDA GPU is available; use {flag} cpu or auto")
-    return device
 
 
 def config_from_dict(data: Any, where: str):

@@ -28,7 +28,8 @@ from ..console import say
 from ..errors import ConfigError
 from ..data.truncation import fitting_scene
 from . import report
-from .loading import load_scene, resolve_device
+from ..device import resolve_device
+from .loading import load_scene
 from .run_dir import check_writable, create_run_dir, read_json, save_run_config
 
 

@@ -6,7 +6,7 @@ Definitions
 **Grids.** A model is queried on a rectilinear grid of cell centres covering the
 scene's volume box: ``factor = 1`` is the scene's voxel grid
 (:meth:`Geometry.voxel_centres`), ``factor = f`` splits every voxel into
-``f^3`` cells (:func:`fine_geometry`). Queries run in chunks of ``chunk`` points,
+``f^3`` cells (``Geometry.refined``). Queries run in chunks of ``chunk`` points,
 under ``torch.no_grad``; results are float32 numpy arrays.
 
 **Predicted material labels.** At each point the label is ``1 + argmax_k w_k``
@@ -83,20 +83,6 @@ DEFAULT_CHUNK = 65536
 
 
 # --------------------------------------------------------------------- grids
-def fine_geometry(geometry, factor: int = 1):
-    """The scene geometry with every voxel split into ``factor^3`` cells (same box)."""
-    factor = int(factor)
-    if factor < 1:
-        raise KneasError(f"grid factor must be a positive integer, got {factor}")
-    if factor == 1:
-        return geometry
-    return dataclasses.replace(
-        geometry,
-        n_voxel=tuple(n * factor for n in geometry.n_voxel),
-        d_voxel=tuple(d / factor for d in geometry.d_voxel),
-    )
-
-
 def grid_points(geometry, factor: int = 1, resolution: Optional[int] = None):
     """``(geometry', axes)``: the grid geometry and its per-axis cell centres (model units).
 
@@ -112,7 +98,7 @@ def grid_points(geometry, factor: int = 1, resolution: Optional[int] = None):
         n = tuple(max(2, int(round(s / cell))) for s in size)
         geo = dataclasses.replace(geometry, n_voxel=n, d_voxel=tuple(s / k for s, k in zip(size, n)))
     else:
-        geo = fine_geometry(geometry, factor)
+        geo = geometry.refined(factor)
     return geo, geo.voxel_axes(dtype=torch.float32)
 
 
@@ -123,7 +109,7 @@ def query_grid(model, geometry, *, keys: Sequence[str] = ("mu", "weights", "dist
 
     Args:
         model: a CTModel (or anything with ``query(points [P, 3]) -> dict``).
-        geometry: grid geometry (e.g. from :func:`fine_geometry`).
+        geometry: grid geometry (e.g. from ``Geometry.refined``).
         keys: outputs to keep (missing ones, e.g. ``weights`` of a NAF model, are skipped).
         chunk: points per query; memory is ``chunk`` x the model's activations plus
             the outputs, ``nx·ny·nz·4`` bytes per scalar channel.
@@ -517,7 +503,7 @@ def _score_materials(scene, pred: np.ndarray, mean_mu: np.ndarray, fields, *, fi
     }
     if fields is not None:
         say = progress or (lambda line: None)
-        fgeo = fine_geometry(geo, fine)
+        fgeo = geo.refined(fine)
         pgeo = field_geometry or fgeo
         say(f"surfaces: the signed distances on the {fine}x grid ({math.prod(pgeo.n_voxel):,} points) and the exact membership")
         e = fields(pgeo)

@@ -328,15 +328,6 @@ class HashGridEncoding(nn.Module):
         index = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
         return index.long(), frac  # int64 for the gather: index_select's backward is 8x slower with int32 on a CPU
 
-    def corner_indices_and_weights(
-        self, x: torch.Tensor, dtype: torch.dtype | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``index [P, L, 8]`` (see :meth:`corners`) and trilinear ``weights [P, L, 8]`` (sum to 1)."""
-        index, frac = self.corners(x, dtype)
-        w = torch.stack([1.0 - frac, frac], -1)  # [P, L, 3, 2]
-        weights = (w[:, :, 0, :, None, None] * w[:, :, 1, None, :, None] * w[:, :, 2, None, None, :]).flatten(2)
-        return index, weights
-
     def encode(self, x: torch.Tensor, table: torch.Tensor | None = None) -> torch.Tensor:
         """Encode ``x [P, 3]`` with ``table [n_entries, F]`` (default ``self.table``) -> ``[P, L*F]``.
 
