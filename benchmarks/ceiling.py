@@ -5,8 +5,8 @@
 For each k-neas (or any neural) run folder on a built-in scene: a fresh model of the run's own
 config (same encoding, K, bounds from its ``bounds.json``, same empty-space grid) is fitted to the
 scene's **ground-truth** volume at the voxel centres with the warm start's loss
-(``Trainer.warm_start``: MSE of mu + occupancy term + eikonal, ``--steps`` Adam steps of
-``trainer.warm_start_points`` voxel centres). Its psnr3d / ssim3d is how far this representation
+(``stages.warm_start.warm_start``: MSE of mu + occupancy term + eikonal, ``--steps`` Adam steps of
+the warm-start stage's voxel centres per step). Its psnr3d / ssim3d is how far this representation
 can go; the run's own psnr3d is how far training from the projections got. Not part of the test
 suite.
 """
@@ -26,8 +26,10 @@ from run_rows import run_rows
 def ceiling(run_dir: Path, steps: int) -> dict:
     from kneas_method.engine.evaluate import sample_volume
     from kneas_method.engine.loading import load_scene, read_run_config
-    from kneas_method.engine.train_stage import set_visual_hull
+    from kneas_method.engine.loss_scale import loss_scale
     from kneas_method.engine.trainer import Trainer
+    from kneas_method.engine.visual_hull import set_visual_hull
+    from kneas_method.stages.warm_start import WarmStartConfig, warm_start
     from kneas_method.evaluation.metrics import volume_metrics
 
     config = read_run_config(run_dir)
@@ -40,11 +42,11 @@ def ceiling(run_dir: Path, steps: int) -> dict:
         bounds = (b["alphas"], b["betas"])
     gt = np.asarray(scene.image, dtype=np.float32)
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(config, scene, Path(tmp), epochs=1, device="cpu", bounds=bounds, label="ceiling")
+        trainer = Trainer(config, scene, Path(tmp), epochs=1, device="cpu", bounds=bounds, label="ceiling", loss_scale=loss_scale(scene))
         if trainer.model.occupancy is not None:
             set_visual_hull(trainer.model, scene, "ceiling")
-        seconds = trainer.warm_start(gt, steps, int(config.trainer.warm_start_points), what="ground-truth",
-                                     occupancy_weight=float(config.trainer.warm_start_occupancy))
+        fit = config.stages.warm_start or WarmStartConfig()
+        seconds = warm_start(trainer, gt, steps, int(fit.points), what="ground-truth", occupancy_weight=float(fit.occupancy))
         volume = sample_volume(trainer.model, scene.geometry)
     m = volume_metrics(volume, gt)
     run_metrics = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8")) if (run_dir / "metrics.json").is_file() else {}

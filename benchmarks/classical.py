@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     from kneas_method.data.truncation import fitting_scene
     from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
     from kneas_method.evaluation.surfaces import volume_material_metrics
-    from kneas_method.presets import TABLE
+    from kneas_method.stages.procedures import REFINE_CLASSICAL
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="foot",
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
-                    "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule (presets.TABLE['cpu']: the histogram's "
+                    "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule (the refine-classical procedure: the histogram's "
                     "peaks, bic-valleys with its GMM starts where there are fewer than two)")
     ap.add_argument("--shells", action="store_true", help="with --dice: also score the thresholded volume with its partial-volume "
                     "shells relabelled first, as kneas-eval does a k-neas model's (kneas_method.evaluation.partial_volume): "
@@ -159,7 +159,7 @@ def main(argv=None) -> int:
                 row["trace"] = trace
                 row["best"] = max(trace, key=lambda t: t["psnr3d"])
             if args.dice and scene.labels is not None:
-                cpu = TABLE["cpu"]["run"]  # the K rule the cpu preset gives k-neas, from its one definition
+                cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
                 for tail, shells in [("", False)] + ([("_shells", True)] if args.shells else []):
                     mm = volume_material_metrics(vol, scene, surfaces=scene.membership is not None, shells=shells)
                     row["dice" + tail] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}

@@ -1,5 +1,5 @@
 #!/bin/bash
-# The CUDA checks and timings of docs/experiments.md "The CUDA path": run from the repository root on a
+# The CUDA checks and timings: run from the repository root on a
 # machine with a CUDA GPU, the package installed (pip install -e .[dev]; on a machine that reaches no
 # registry but has torch, scikit-learn, scikit-image and rich: carry the wheels of tyro, docstring-parser,
 # shtab and typeguard, install them, then pip install --no-deps --no-build-isolation -e .).

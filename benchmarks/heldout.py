@@ -14,38 +14,38 @@ Scenes (``heldout:NAME`` in ``benchmarks/classical.py --scenes``):
   ``kneas-data import`` picks for a scan), a 256² detector (pixels 1.5 voxels wide at the
   isocentre), 50 views, exact projections: what a grid 8x larger costs.
 * ``jaw-noisy``: the built-in jaw with TIGRE/NAF detector noise (1e5 photons, electronic σ 10).
-* ``foot-noisy``, ``chest-noisy``: the built-in foot and chest with the same noise (added in the
-  64th stop, after the SURE smoothing was measured on jaw-noisy, to check it on scans it was not
+* ``foot-noisy``, ``chest-noisy``: the built-in foot and chest with the same noise (added on
+  2026-11-28, after the SURE smoothing was measured on jaw-noisy, to check it on scans it was not
   built on).
-* ``abdomen-noisy``: the built-in abdomen with the same noise (added in the 65th stop, after the
+* ``abdomen-noisy``: the built-in abdomen with the same noise (added on 2026-11-28, after the
   bilateral filter's settings were chosen on the four noisy scans above, to check them on one they
   were not chosen on).
-* ``head-noisy``: ``head-256`` (its phantom, 256² detector) with the same noise (added in the 67th
-  stop, after the materials stage was built on the five noisy scans here, to check it on one it was
+* ``head-noisy``: ``head-256`` (its phantom, 256² detector) with the same noise (added on
+  2026-11-28, after the materials stage was built on the five noisy scans here, to check it on one it was
   not built on).
-* ``knee``: other anatomy and another scanner (added in the 68th stop): a knee (fat, muscle, femur,
+* ``knee``: other anatomy and another scanner (added on 2026-11-28): a knee (fat, muscle, femur,
   tibia, fibula and patella as cortical shells around marrow), a box 112 x 112 x 144 voxels of
   1.25 x 1.25 x 1.5 mm (not cubic, not isotropic), a 192² detector, a shorter source (750 mm
   from the axis, 1200 mm to the detector: a wider cone), 45 views over a full 360°, exact projections.
-* ``knee-physical``: the same knee scan with the attenuation a scanner gives (added in the 68th
-  stop): 75 times the levels, muscle at 20 /m as water at about 70 keV, so that the line integrals
+* ``knee-physical``: the same knee scan with the attenuation a scanner gives (added on
+  2026-11-28): 75 times the levels, muscle at 20 /m as water at about 70 keV, so that the line integrals
   reach ~5 instead of ~0.07 (the built-in scenes' NAF-normalised volumes lie within [0, 1] /m).
-* ``knee-long``: the knee with the leg going on 130 mm beyond the box at both ends (added in the 68th
-  stop), as a scanner sees a leg: every view's top and bottom rows cross tissue outside the
+* ``knee-long``: the knee with the leg going on 130 mm beyond the box at both ends (added on
+  2026-11-28), as a scanner sees a leg: every view's top and bottom rows cross tissue outside the
   reconstructed box (a scan truncated along the axis).
-* ``knee-long-noisy``: ``knee-long`` with the noisy scans' detector noise (added in the 69th stop, after
+* ``knee-long-noisy``: ``knee-long`` with the noisy scans' detector noise (added on 2026-11-28, after
   the longer box was built on ``knee-long``).
-* ``knee-halffan``: the knee on an offset detector (added in the 69th stop), as large-field cone-beam
+* ``knee-halffan``: the knee on an offset detector (added on 2026-11-28), as large-field cone-beam
   scanners extend their field of view: 112 of the 192 columns, shifted so that they see 16 columns
   past the central ray on one side and the whole object on the other; each view sees a little more
   than half the object, and the 360° orbit gives every point of it views from both sides.
-* ``knee-narrow``: the knee on the middle 80 of the 192 columns (added in the 69th stop): a field of
+* ``knee-narrow``: the knee on the middle 80 of the 192 columns (added on 2026-11-28): a field of
   view of 54 mm radius, narrower than the leg (62 mm), so most views miss part of it (truncated data).
-* ``knee-narrow-noisy``: ``knee-narrow`` with the noisy scans' detector noise (added in the 70th stop,
+* ``knee-narrow-noisy``: ``knee-narrow`` with the noisy scans' detector noise (added on 2026-11-28,
   with ``head-narrow``: a count chosen on clean data checked on noise, whose ASD-POCS peaks early).
-* ``knee-long-narrow``: ``knee-long``'s leg on ``knee-narrow``'s detector (added in the 70th stop): truncated
+* ``knee-long-narrow``: ``knee-long``'s leg on ``knee-narrow``'s detector (added on 2026-11-28): truncated
   along the axis and across it at once, as a cone-beam scan of a leg is; both mechanisms at once.
-* ``head-narrow``: ``head-256`` on the middle 136 of its 256 columns (added in the 70th stop, after the
+* ``head-narrow``: ``head-256`` on the middle 136 of its 256 columns (added on 2026-11-28, after the
   start's count for such scans was chosen on ``knee-narrow``, to check it on other anatomy and a
   larger detector): a field of view about 87 % of the head's width, as ``knee-narrow``'s is of the leg's.
 * ``head-textured-noisy``: ``head-256``'s volume with a smooth ±10 % texture inside the object

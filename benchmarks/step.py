@@ -14,7 +14,7 @@ exact eikonal on every sample, SPEC §3), ``backward``, and an Adam step with
 soft selector (``--materials K``). ``--preset cpu`` times the cpu preset's
 smaller grid and eikonal fraction instead. ``--anchor-points 4096`` adds the cpu
 preset's anchor term (the field queried at that many more points per step, as
-``Trainer.anchor_loss``), which the preset's training pays at every step:
+``stages.anchor.Anchor.loss``), which the preset's training pays at every step:
 
     python benchmarks/step.py --preset cpu --rays 128 --samples 64 --materials 3 --anchor-points 4096
 
@@ -103,7 +103,7 @@ def batches(args, device: torch.device, n: int = 8):
 
 
 def anchor_term(model, anchor_points: int, generator) -> torch.Tensor:
-    """What the trainer's anchor adds to a step (``Trainer.anchor_loss``): the field queried at
+    """What the trainer's anchor adds to a step (``stages.anchor.Anchor.loss``): the field queried at
     ``anchor_points`` random points of the box, an MSE and the label cross-entropy against
     targets (here random, the cost is the same), weight 0.01."""
     device = next(model.parameters()).device

@@ -12,8 +12,8 @@ training projections ``b`` with this project's Joseph projector ``A`` (``kneas_m
   ``fine_floor``: the same on a grid ``--fine`` times finer (the phantom's voxel means there,
   projected at that resolution);
 - ``band``: the voxels within one voxel of a place where ``v``'s gradient exceeds 2 % of its 99.5th
-  percentile per voxel (``kneas_method.correction.edge_band``, the run's own volume, no ground truth;
-  the figures of the 40th stop in docs/experiments.md used 0.02 data units per voxel), and the share
+  percentile per voxel (``kneas_method.stages.band_correction.edge_band``, the run's own volume, no ground truth;
+  the figures of 2026-11-25 used 0.02 data units per voxel), and the share
   of the squared error inside it;
 - ``corrections``: ``v + M x`` with ``M`` the band and ``x`` from CGLS on ``(A M) x = r`` started at
   0, psnr3d per iteration (best and where), for four residuals ``r``:
@@ -23,7 +23,7 @@ training projections ``b`` with this project's Joseph projector ``A`` (``kneas_m
   discretisation estimate can do at that resolution); ``data_field_discretisation`` the same ``d``
   computed from the run's own field (on the fine grid inside the band, 2x sharper, from its fields
   queried on a 2x grid and interpolated; the trilinear upsampling of ``v`` elsewhere;
-  ``kneas_method.correction.discretisation_error``) - what
+  ``kneas_method.stages.band_correction.discretisation_error``) - what
   the cpu preset's band correction does after training, here without its noise stop.
   ``fine_floor`` and the exact row need an analytic phantom: built-in scenes only.
 
@@ -42,8 +42,8 @@ from run_rows import run_rows
 
 
 def band_curve(A, v: torch.Tensor, gt: np.ndarray, band: torch.Tensor, r: torch.Tensor, iterations: int) -> list[float]:
-    """psnr3d of ``v + x_i`` for the CGLS iterates x_i of ``(A M) x = r`` from 0 (``correction.band_cgls``)."""
-    from kneas_method.correction import band_cgls
+    """psnr3d of ``v + x_i`` for the CGLS iterates x_i of ``(A M) x = r`` from 0 (``band_correction.band_cgls``)."""
+    from kneas_method.stages.band_correction import band_cgls
     from kneas_method.evaluation.metrics import psnr3d
 
     out: list[float] = []
@@ -58,7 +58,7 @@ def summary(curve: list[float]) -> dict:
 
 def visible_error(run_dir: Path, fine: int, iterations: int) -> dict:
     from kneas_method.classical.projector import Projector
-    from kneas_method.correction import box_mean, discretisation_error, edge_band
+    from kneas_method.stages.band_correction import box_mean, discretisation_error, edge_band
     from kneas_method.data.phantoms import PHANTOM_NAMES, get_phantom
     from kneas_method.engine.evaluate import sample_volume
     from kneas_method.engine.loading import load_run

@@ -121,6 +121,16 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     return value
 
 
+def _nested_config_type(hint: Any):
+    """The dataclass of a field typed ``SomeConfig`` or ``Optional[SomeConfig]`` (possibly
+    ``Annotated``), else None."""
+    if typing.get_origin(hint) is typing.Annotated:
+        hint = typing.get_args(hint)[0]
+    args = typing.get_args(hint) if typing.get_origin(hint) is typing.Union else (hint,)
+    classes = [a for a in args if isinstance(a, type) and dataclasses.is_dataclass(a)]
+    return classes[0] if len(classes) == 1 else None
+
+
 def update_from_dict(config: Any, data: dict, where: str = "config") -> Any:
     """Return a copy of dataclass ``config`` with the values of ``data`` applied.
 
@@ -138,8 +148,58 @@ def update_from_dict(config: Any, data: dict, where: str = "config") -> Any:
             name = key if isinstance(key, str) and key.isprintable() and key.strip() == key and key else repr(key)
             raise ConfigError(f"unknown setting {where}.{name}; {known}")
         current = getattr(config, key)
+        nested = _nested_config_type(hints.get(key))
+        if nested is not None and (value is None or current is None):  # an optional part: off (null) or on
+            if value is None and type(None) in typing.get_args(hints.get(key)):
+                changes[key] = None
+                continue
+            current = nested()
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             changes[key] = update_from_dict(current, value, f"{where}.{key}")
         else:
             changes[key] = _coerce(value, hints.get(key, Any), f"{where}.{key}")
     return dataclasses.replace(config, **changes)
+
+
+# ------------------------------------------------------------------ validation
+def at_least(lowest: float, *, whole: bool = False, strict: bool = False, at_most: float | None = None) -> dict:
+    """Field metadata: the setting is a number ``>= lowest`` (``> lowest`` with ``strict``),
+    ``<= at_most`` when given, a whole number with ``whole``; None is not checked (the
+    preset's or the procedure's value, or unused). :func:`check_ranges` reads it."""
+    return {"range": (float(lowest), bool(whole), bool(strict), at_most)}
+
+
+def check_ranges(config: Any, prefix: str) -> None:
+    """One-line ConfigError for the first field of ``config`` out of the range its metadata gives
+    (:func:`at_least`), named as its command-line flag ``--{prefix}{name}``."""
+    import math
+
+    for f in dataclasses.fields(config):
+        rule = f.metadata.get("range")
+        value = getattr(config, f.name)
+        if rule is None or value is None:
+            continue
+        lowest, whole, strict, at_most = rule
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if whole:
+            number = number and float(value).is_integer()
+        fits = number and (value > lowest if strict else value >= lowest) and (at_most is None or value <= at_most)
+        if not fits:
+            what = ("a whole number" if whole else "a number") + (" > " if strict else " >= ") + f"{lowest:g}"
+            if at_most is not None:
+                what += f" and <= {at_most:g}"
+            raise ConfigError(f"--{prefix}{f.name.replace('_', '-')} must be {what}, got {value!r}")
+
+
+def check_tree(config: Any, prefix: str = "") -> None:
+    """Check a config tree: every dataclass in it checks itself, its own ``check(prefix)`` where it
+    has one (its ranges and the rules between its settings), else :func:`check_ranges`; nested
+    configs are checked under ``prefix`` + their field's name (``trainer.``, ``stages.correction.``)."""
+    if hasattr(config, "check"):
+        config.check(prefix)
+    else:
+        check_ranges(config, prefix)
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_tree(value, f"{prefix}{f.name.replace('_', '-')}.")

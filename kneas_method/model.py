@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from . import registry
-from .config import InstantiateConfig, update_from_dict
+from .config import InstantiateConfig, at_least, update_from_dict
 from .errors import ConfigError
 from .losses.curvature import surface_smoothness
 from .renderer import RenderOutput, beer_lambert, integrate_samples, sample_points, segment_lengths, voxel_plane_samples
@@ -141,7 +141,7 @@ class ModelConfig(InstantiateConfig):
             to half the first material's peak: its material 1 reaches up to the valley before the
             next material, so ``alpha_1 / 2`` can lie above material 1's own level.
         compile: ``torch.compile`` the fused SDF pass (values + distance gradients).
-            Opt-in: measured on 2 CPU cores (cpu preset, torch 2.13; docs/experiments.md)
+            Opt-in: measured on 2 CPU cores (cpu preset, torch 2.13)
             a training step with its anchor ran 15-18 % faster, but each new
             batch size costs a compile of 25-30 s with an empty inductor cache (3 s with a
             warm one) and a run meets at least three (warm start, training, the passes'
@@ -158,24 +158,24 @@ class ModelConfig(InstantiateConfig):
     selector: str = "soft"
     selector_options: Options = dataclasses.field(default_factory=dict)
     num_materials: int = 3
-    s_init: Optional[float] = None
+    s_init: Optional[float] = dataclasses.field(default=None, metadata=at_least(0, strict=True))
     alphas: Optional[tuple[float, ...]] = None
     betas: Optional[tuple[float, ...]] = None
     ray_sampler: str = "stratified"
-    num_samples: Optional[int] = None
-    num_eval_samples: Optional[int] = None
+    num_samples: Optional[int] = dataclasses.field(default=None, metadata=at_least(1, whole=True))
+    num_eval_samples: Optional[int] = dataclasses.field(default=None, metadata=at_least(1, whole=True))
     intensity_loss: str = "intensity"
     floater: bool = False
     floater_loss: str = "floater"
-    floater_fraction: float = 0.2
-    lambda_floater: float = 0.1
+    floater_fraction: float = dataclasses.field(default=0.2, metadata=at_least(0))
+    lambda_floater: float = dataclasses.field(default=0.1, metadata=at_least(0))
     eikonal_loss: str = "eikonal"
     eikonal_mode: Optional[str] = None
-    eikonal_fraction: Optional[float] = None
-    eikonal_fd_step: Optional[float] = None
-    lambda_eikonal: Optional[float] = None
+    eikonal_fraction: Optional[float] = dataclasses.field(default=None, metadata=at_least(0, strict=True))
+    eikonal_fd_step: Optional[float] = dataclasses.field(default=None, metadata=at_least(0, strict=True))
+    lambda_eikonal: Optional[float] = dataclasses.field(default=None, metadata=at_least(0))
     occupancy_grid: Optional[bool] = None
-    occupancy_resolution: int = 64
+    occupancy_resolution: int = dataclasses.field(default=64, metadata=at_least(1, whole=True))
     quadrature: Optional[Quadrature] = None
     first_label_threshold: Optional[float] = None
     compile: bool = False
@@ -279,7 +279,7 @@ class CTModel(nn.Module):
             self._with_gradients = torch.compile(self._field_with_gradients)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # checkpoints from before the attenuation unit (68th stop) were trained in data units
+        # checkpoints from before the attenuation unit (2026-11-28, a74f8b3) were trained in data units
         if not self.has_surfaces and prefix + "attenuation_unit" not in state_dict:
             state_dict[prefix + "attenuation_unit"] = torch.ones((), dtype=torch.float32)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -125,3 +125,4 @@ def ray_intervals(occupied: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, or
     t0 = torch.where(any_hit, torch.clamp(t[first] - dt, min=near), torch.full_like(t[first], near))
     t1 = torch.where(any_hit, torch.clamp(t[last] + dt, max=far), torch.full_like(t[first], near))
     return t0, t1
+

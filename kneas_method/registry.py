@@ -13,7 +13,9 @@ in the same groups, with no change to kneas:
 Groups: ``kneas.methods``, ``kneas.encodings`` (hash grid, frequency),
 ``kneas.fields`` (SDF, NAF: :class:`~kneas_method.fields.base.Field`),
 ``kneas.attenuations`` (single, shared, independent), ``kneas.samplers``,
-``kneas.selectors``, ``kneas.losses``, ``kneas.datamanagers``.
+``kneas.selectors``, ``kneas.losses``, ``kneas.datamanagers``, ``kneas.stages`` (a procedure's
+parts: :class:`~kneas_method.stages.base.StageConfig`) and ``kneas.procedures``
+(:class:`~kneas_method.stages.procedures.Procedure`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ from typing import Any
 
 from .errors import ConfigError
 
-GROUPS = ("methods", "encodings", "fields", "attenuations", "samplers", "selectors", "losses", "datamanagers")
+GROUPS = ("methods", "encodings", "fields", "attenuations", "samplers", "selectors", "losses", "datamanagers", "stages",
+          "procedures")
 
 
 @dataclasses.dataclass

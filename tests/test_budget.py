@@ -1,4 +1,4 @@
-"""The run's time budget (kneas_method.engine.budget): its pure rules, and a trainer shortened by it.
+"""The run's time budget (kneas_method.stages.time_budget): its pure rules, and a trainer shortened by it.
 The stage-level checks (a budget spent before the passes, counted from the run's start) are in
 tests/test_correction.py."""
 
@@ -9,7 +9,7 @@ import json
 
 from conftest import sphere_scene
 from kneas_method.data.simulate import SimulationConfig
-from kneas_method.engine.budget import PASSES_SHARE, pass_fits, run_budget, training_steps
+from kneas_method.stages.time_budget import PASSES_SHARE, pass_fits, run_budget, training_steps
 
 SIM = SimulationConfig(n_voxel=16, voxel_mm=8.0, n_detector=24, n_train=8, n_val=2)
 
@@ -50,13 +50,10 @@ def test_a_shortened_trainer_moves_its_learning_rate_step_and_its_config_with_it
     trainer = Trainer(cfg, scene, tmp_path, epochs=20, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
     spe, factor = trainer.steps_per_epoch, float(cfg.trainer.lr_decay_factor)
     assert trainer.decay_step == round(cfg.trainer.lr_decay_at * 20 * spe)
-    said = []
-    trainer.shorten(8 * spe + 1, 0.05, 42.0, say=said.append)  # rounded down to whole epochs
+    trainer.shorten(8 * spe + 1)  # rounded down to whole epochs
     assert trainer.epochs == 8 and trainer.total_steps == 8 * spe and trainer.decay_step == round(cfg.trainer.lr_decay_at * 8 * spe)
     rate = trainer.scheduler.lr_lambdas[0]
     assert rate(trainer.decay_step - 1) == 1.0 and rate(trainer.decay_step) == factor  # the step moved with the count
     assert json.loads((tmp_path / "config.json").read_text())["trainer"]["epochs"] == 8 and trainer.config.trainer.epochs == 8
-    assert trainer.training_budget == {"epochs_planned": 20, "epochs": 8, "seconds_per_step": 0.05, "seconds_left": 42.0}
-    assert len(said) == 1 and f"{8 * spe} of the {20 * spe} steps (8 of 20 epochs)" in said[0] and "--trainer.time-budget 0" in said[0]
     trainer.train()
     assert trainer.step == 8 * spe and trainer.complete

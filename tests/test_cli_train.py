@@ -132,17 +132,17 @@ def test_resume_applies_safe_flags_and_refuses_the_others(tmp_path, capsys, monk
 def test_choices_are_listed_by_help_and_checked(tmp_path, capsys):
     code, out, _ = run_main(["k-neas", "--help"], capsys)
     assert code == 0
-    for flag, choices in (("--bounds-volume", "{None,prior,fdk,sart,os-sart,cgls,asd-pocs}"),
-                          ("--trainer.warm-start", "{None,none,fdk,sart,os-sart,cgls,asd-pocs}"),
+    for flag, choices in (("--stages.classical-start.algorithm", "{fdk,sart,os-sart,cgls,asd-pocs}"),
+                          ("--stages.smoothing.rule", "{sure,sure-gaussian}"),
                           ("--preset", "{auto,paper,cpu,tiny}"), ("--bounds-method", "{gmm,quantile,bayes}"),
                           ("--bounds-k-rule", "{None,bic,bic-valleys,peaks}"), ("--model.quadrature", "{None,bins,voxel-planes}")):
         assert re.search(rf"{re.escape(flag)} {re.escape(choices)}", out), flag
     bad = tmp_path / "bad.json"
     data = to_dict(registry.load("methods", "k-neas").config)
-    data["trainer"]["warm_start"] = "ground-truth"
+    data["stages"]["classical_start"]["algorithm"] = "ground-truth"
     bad.write_text(json.dumps(data))
     code, _, err = run_main(["--config", str(bad), "--dry-run"], capsys)
-    assert code == 2 and "trainer.warm_start" in err and "'ground-truth'" in err and "none" in err
+    assert code == 2 and "stages.classical_start.algorithm" in err and "'ground-truth'" in err and "asd-pocs" in err
 
 
 def test_older_fdk_config_still_loads(tmp_path):

@@ -1,4 +1,4 @@
-"""The band correction (kneas_method.correction): its pure functions against naive oracles, the
+"""The band correction (kneas_method.stages.band_correction): its pure functions against naive oracles, the
 correction of a known-answer surface model, the noise stop, the fit that writes it into the model,
 and the stage in a tiny run (metrics, checkpoint, reloading, resuming)."""
 
@@ -14,7 +14,7 @@ import torch
 
 from conftest import exact_sphere_model, run, run_dir_of, sphere_scene, sphere_scene_file
 from kneas_method.classical.projector import Projector
-from kneas_method.correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band, gradient_magnitude, requery_band,
+from kneas_method.stages.band_correction import (band_cgls, band_correction, band_fields, box_mean, discretisation_error, edge_band, gradient_magnitude, requery_band,
                                      gradient_weights, interpolate_fields, noise_variance)
 from kneas_method.data.simulate import SimulationConfig
 from kneas_method.engine.evaluate import sample_volume
@@ -247,7 +247,7 @@ def test_band_correction_ring_weight_sets_where_it_solves_and_keeps_the_band_for
         assert c.residuals[-1] < c.residuals[0]
         assert float(((v + c.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
     for bad in (-0.1, 1.5):
-        with pytest.raises(KneasError, match="correction-ring"):
+        with pytest.raises(KneasError, match="correction.ring"):
             band_correction(model, v, b, scene.geometry, scene.train.angles, ring=bad, **kw)
 
 
@@ -284,7 +284,7 @@ def test_band_correction_weighs_the_band_by_its_gradient_when_asked():
                           - by_gradient.discretisation, by_gradient.band.float() * w, 3)
     assert torch.allclose(by_gradient.grid, oracle, atol=1e-6)  # CGLS with the gradient weights as columns' scale
     assert float(((v + by_gradient.grid - gt) ** 2).mean()) < float(((v - gt) ** 2).mean())  # towards the truth
-    with pytest.raises(KneasError, match="correction-weights"):
+    with pytest.raises(KneasError, match="correction.weights"):
         band_correction(model, v, b, scene.geometry, scene.train.angles, weighting="steepest", **kw)
 
 
@@ -300,6 +300,7 @@ def test_band_correction_stops_at_the_noise_of_a_noisy_scan():
 def test_fit_to_volume_moves_the_model_towards_the_target_in_the_mask(tmp_path):
     from kneas_method import presets, registry
     from kneas_method.engine.trainer import Trainer
+    from kneas_method.stages.volume_fit import fit_in_region
 
     scene = sphere_scene(SIM)
     cfg = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2)
@@ -308,7 +309,7 @@ def test_fit_to_volume_moves_the_model_towards_the_target_in_the_mask(tmp_path):
     mask = edge_band(torch.as_tensor(gt)).numpy()
     before = sample_volume(trainer.model, scene.geometry)
     state = {k: v.clone() for k, v in trainer.optimizer.state_dict()["state"].get(0, {}).items()}
-    trainer.fit_to_volume(gt, mask, steps=60, points_per_step=512, lr=1e-2)
+    fit_in_region(trainer, gt, mask, steps=60, points_per_step=512, lr=1e-2)
     after = sample_volume(trainer.model, scene.geometry)
     assert np.mean((after - gt)[mask] ** 2) < 0.5 * np.mean((before - gt)[mask] ** 2)
     assert {k: v for k, v in trainer.optimizer.state_dict()["state"].get(0, {}).items()}.keys() == state.keys()  # training optimiser untouched
@@ -318,6 +319,7 @@ def test_fit_with_the_curvature_term_smooths_the_surfaces(tmp_path):
     from kneas_method import presets, registry
     from kneas_method.engine.trainer import Trainer
     from kneas_method.losses.curvature import surface_smoothness
+    from kneas_method.stages.volume_fit import fit_in_region
 
     scene = sphere_scene(SIM)
     cfg = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2)
@@ -331,7 +333,7 @@ def test_fit_with_the_curvature_term_smooths_the_surfaces(tmp_path):
     for weight in (0.0, 1.0):
         torch.manual_seed(0)
         trainer = Trainer(presets.resolve(cfg), scene, tmp_path / str(weight), epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
-        trainer.fit_to_volume(gt, mask, steps=60, points_per_step=512, lr=1e-2, curvature=weight)
+        fit_in_region(trainer, gt, mask, steps=60, points_per_step=512, lr=1e-2, curvature=weight)
         model = trainer.model
         d = model.field.distances(pts).detach()
         smoothness.append(float(surface_smoothness(model.distance_gradients(pts), model.distance_gradients(pts + steps), d, h).detach()))
@@ -343,29 +345,34 @@ def test_fit_with_the_curvature_term_smooths_the_surfaces(tmp_path):
     assert any(p.grad is not None and float(p.grad.abs().sum()) > 0 for p in model.field.parameters())
 
 
+# the paper's procedure with the band correction added (the paper's fitting settings, so a few steps train a sphere)
+CORRECTION = ["--procedure", "paper", "--add-stages", "correction"]
+
+
 def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     from kneas_method.engine.checkpoint import load_latest_checkpoint
     from kneas_method.engine.loading import load_run
 
     scene_path = sphere_scene_file(tmp_path)
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
-            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "2", "--trainer.epochs", "20",
-            "--trainer.correction-noise-factor", "0",  # no noise stop: every pass iterates
-            "--trainer.correction-steps", "30", "--trainer.correction-points", "1024",
-            "--trainer.time-budget", "3600"]  # a budget that leaves room for every pass changes nothing
+            "--output-dir", str(tmp_path / "out"), *CORRECTION, "time-budget", "--stages.correction.passes", "2", "--trainer.epochs", "20",
+            "--stages.correction.noise-factor", "0",  # no noise stop: every pass iterates
+            "--stages.correction.steps", "30", "--stages.correction.points", "1024",
+            "--stages.time-budget.seconds", "3600"]  # a budget that leaves room for every pass changes nothing
     code, out, err = run(argv, capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    passes = metrics["correction"]
-    assert metrics["correction_budget"] is None and "left out" not in out
-    cap = json.loads((run_dir / "config.json").read_text())["trainer"]["correction_iterations"]
+    record = metrics["stages"]["correction"]
+    passes = record["passes"]
+    assert record["budget"] is None and "left out" not in out and metrics["stages"]["time-budget"]["training"] is None
+    cap = json.loads((run_dir / "config.json").read_text())["stages"]["correction"]["iterations"]
     assert len(passes) == 2 and all(p["iterations"] == cap for p in passes), passes  # no noise stop: the cap
-    assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --trainer.correction-refresh 3
+    assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --stages.correction.refresh 3
     assert all(p["residual_mean_square"][-1] < p["residual_mean_square"][0] for p in passes)
-    assert metrics["correction_time_s"] > 0 and "correction" in out.split("time per stage:")[1]
+    assert record["seconds"] > 0 and "correction" in out.split("time per stage:")[1]
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
-    assert state["extra"]["correction"] == passes and state["step"] == metrics["steps"]
+    assert state["extra"]["stages"]["correction"]["passes"] == passes and state["step"] == metrics["steps"]
     loaded = load_run(run_dir)  # the corrected model is the run's model: what kneas-eval scores
     assert math.isclose(psnr3d(sample_volume(loaded.model, loaded.scene.geometry), np.asarray(loaded.scene.image, np.float32)),
                         metrics["psnr3d"], abs_tol=1e-4)
@@ -378,23 +385,24 @@ def test_a_time_budget_that_has_run_out_shortens_training_leaves_the_passes_out_
 
     scene_path = sphere_scene_file(tmp_path)
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
-            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "3", "--trainer.epochs", "60",
-            "--trainer.correction-noise-factor", "0", "--trainer.correction-steps", "5", "--trainer.correction-points", "256",
-            "--trainer.denoise", "sure", "--trainer.time-budget", "1"]  # spent before training ends (30 s are kept for the end)
+            "--output-dir", str(tmp_path / "out"), *CORRECTION, "smoothing", "time-budget", "--stages.correction.passes", "3",
+            "--trainer.epochs", "60", "--stages.correction.noise-factor", "0", "--stages.correction.steps", "5",
+            "--stages.correction.points", "256", "--stages.time-budget.seconds", "1"]  # spent before training ends (30 s are kept for the end)
     code, out, err = run(argv, capsys)
     assert code == 0, err
-    assert "no time for pass 1, so 3 of 3 passes are left out" in out and "--trainer.time-budget" in out
+    assert "no time for pass 1, so 3 of 3 passes are left out" in out and "--skip-stages time-budget" in out
     assert "100 of the 240 steps (25 of 60 epochs)" in out  # 4 steps an epoch: cut at the 100th step, where it was timed
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["steps"] == 100 and metrics["epochs"] == 25
-    assert metrics["training_budget"]["epochs_planned"] == 60 and metrics["training_budget"]["epochs"] == 25
+    budget = metrics["stages"]["time-budget"]
+    assert budget["training"]["epochs_planned"] == 60 and budget["training"]["epochs"] == 25 and budget["time_budget_s"] == 1.0
     assert json.loads((run_dir / "config.json").read_text())["trainer"]["epochs"] == 25  # what a resumed run trains
-    assert metrics["correction"] == [] and metrics["correction_budget"]["passes_left_out"] == 3
-    assert metrics["correction_budget"]["time_budget_s"] == 1.0 and metrics["correction_budget"]["seconds_left"] <= 1.0
-    assert metrics["denoising"] is not None and metrics["denoising"]["filter"] in ("none", "gaussian", "bilateral")  # still smoothed where needed
+    correction = metrics["stages"]["correction"]
+    assert correction["passes"] == [] and correction["budget"]["passes_left_out"] == 3 and correction["budget"]["seconds_left"] <= 1.0
+    assert metrics["stages"]["smoothing"]["filter"] in ("none", "gaussian", "bilateral")  # still smoothed where needed
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
-    assert state["extra"]["correction_budget"] == metrics["correction_budget"]
+    assert state["extra"]["stages"]["correction"]["budget"] == correction["budget"]
     code, out, err = run(["--resume", str(run_dir)], capsys)  # complete: nothing redone
     assert code == 0, err
     assert "already complete" in out
@@ -404,60 +412,68 @@ def test_the_budget_counts_from_the_runs_start_not_from_the_passes(tmp_path):
     import time
 
     from kneas_method import presets, registry
-    from kneas_method.engine.budget import TIME_RESERVE_S
-    from kneas_method.engine.correction_stage import correct_stage
     from kneas_method.engine.trainer import Trainer
+    from kneas_method.stages import RunState
+    from kneas_method.stages.correction import CorrectionConfig
+    from kneas_method.stages.time_budget import TIME_RESERVE_S
 
     scene = sphere_scene(SIM)
     cfg = dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2)
     cfg = presets.resolve(cfg)
-    cfg = dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, correction_passes=2, correction_steps=3, correction_points=128,
-                                                               correction_noise_factor=0.0, time_budget=1000.0))
+    stage = CorrectionConfig(passes=2, steps=3, points=128, noise_factor=0.0).setup()
     for ago in (1000.0 - TIME_RESERVE_S, 0.0):  # a run that began long ago has spent its budget by the passes
         trainer = Trainer(cfg, scene, tmp_path / str(ago), epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
-        done = correct_stage(trainer, scene, cfg, "cpu", run_started=time.perf_counter() - ago)
+        state = RunState(config=cfg, scene=scene, run_dir=tmp_path / str(ago), device="cpu", started=time.perf_counter() - ago,
+                         loss_scale=1.0, say=print, records=trainer.records, trainer=trainer)
+        state.deadline = state.started + 1000.0
+        stage.run(state)
+        done = trainer.records["correction"]
         if ago:
-            assert done == [] and trainer.correction_budget["passes_left_out"] == 2, trainer.correction_budget
+            assert done["passes"] == [] and done["budget"]["passes_left_out"] == 2, done
         else:  # a pass is started (this untrained model's first finds no edge to correct, and ends them)
-            assert len(done) >= 1 and trainer.correction_budget is None, (done, trainer.correction_budget)
-    assert correct_stage(trainer, scene, cfg, "cpu") == done  # done: not redone
+            assert len(done["passes"]) >= 1 and done["budget"] is None, done
+    stage.run(state)  # done: not redone
+    assert trainer.records["correction"] is done
 
 
-def test_a_run_solves_at_the_edges_when_asked_and_reads_the_older_setting(tmp_path, capsys):
+def test_a_run_solves_at_the_edges_when_asked(tmp_path, capsys):
     scene_path = sphere_scene_file(tmp_path)
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
-            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "1", "--trainer.epochs", "4",
-            "--trainer.correction-noise-factor", "0", "--trainer.correction-steps", "5", "--trainer.correction-points", "256",
-            "--trainer.correction-ring", "0"]
+            "--output-dir", str(tmp_path / "out"), *CORRECTION, "--stages.correction.passes", "1", "--trainer.epochs", "4",
+            "--stages.correction.noise-factor", "0", "--stages.correction.steps", "5", "--stages.correction.points", "256",
+            "--stages.correction.ring", "0"]
     code, out, err = run(argv, capsys)
     assert code == 0, err
     assert "CGLS in the band's steep voxels" in out
-    from kneas_method.engine.loading import config_from_dict
-
     saved = json.loads((run_dir_of(out) / "config.json").read_text())
-    assert saved["trainer"]["correction_ring"] == 0.0 and saved["trainer"]["correction_weights"] == "ring"
-    before = {k: v for k, v in saved["trainer"].items() if k not in ("correction_ring", "correction_weights")}
-    for solve, weight in (("edges", 0.0), ("band", 1.0)):  # a 55th-stop config.json: correction_solve band / edges
-        older = {**saved, "trainer": {**before, "correction_solve": solve}}
-        assert config_from_dict(older, "config.json").trainer.correction_ring == weight
-        assert config_from_dict(older, "config.json").trainer.correction_weights == "ring"
+    assert saved["stages"]["correction"]["ring"] == 0.0 and saved["stages"]["correction"]["weights"] == "ring"
+
+
+def test_older_band_settings_read_as_ring_weights():
+    from kneas_method.engine.legacy_config import upgrade
+
+    for solve, weight in (("edges", 0.0), ("band", 1.0)):  # config.json written before 2026-11-27: correction_solve band / edges
+        old = {"method": "k-neas", "bounds_volume": "asd-pocs", "trainer": {"warm_start": "asd-pocs", "warm_start_steps": 300,
+                                                                             "correction_passes": 12, "correction_solve": solve}}
+        stages = upgrade(old, lambda m, x: False)["stages"]
+        assert stages["correction"]["ring"] == weight and stages["correction"]["weights"] == "ring"
 
 
 def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
-    code, out, err = run(["naf", "--scene", "foot", "--preset", "tiny", "--trainer.correction-passes", "2", "--dry-run"], capsys)
-    assert code != 0 and "no surfaces" in err and "Traceback" not in err
-    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-refresh", "0", "--dry-run"], capsys)
-    assert code != 0 and "--trainer.correction-refresh must be a whole number >= 1, got 0" in err and "Traceback" not in err
-    for flag, value, rule in (("--trainer.correction-passes", "-1", "a whole number >= 0"), ("--trainer.correction-lr", "-1e-4", "a number >= 0"),
-                              ("--trainer.materials-refit-steps", "-5", "a whole number >= 0"), ("--trainer.anchor-points", "0", "a whole number >= 1"),
-                              ("--trainer.time-budget", "-1", "a number >= 0")):
-        code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", flag, value, "--dry-run"], capsys)
+    code, out, err = run(["naf", "--scene", "foot", "--preset", "cpu", "--dry-run"], capsys)
+    assert code == 0 and "stages: classical-start, time-budget, warm-start, anchor" in out  # no surfaces: no correction
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", "--stages.correction.refresh", "0", "--dry-run"], capsys)
+    assert code != 0 and "--stages.correction.refresh must be a whole number >= 1, got 0" in err and "Traceback" not in err
+    for flag, value, rule in (("--stages.correction.passes", "-1", "a whole number >= 1"), ("--stages.correction.lr", "-1e-4", "a number >= 0"),
+                              ("--stages.materials-refit.steps", "-5", "a whole number >= 1"), ("--stages.anchor.points", "0", "a whole number >= 1"),
+                              ("--stages.time-budget.seconds", "-1", "a number > 0")):
+        code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", flag, value, "--dry-run"], capsys)
         assert code == 2 and f"{flag} must be {rule}, got" in err and "Traceback" not in err
-    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-ring", "2", "--dry-run"], capsys)
-    assert code != 0 and "correction_ring" in err and "from 0" in err and "Traceback" not in err
-    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.correction-weights", "gradient",
-                          "--trainer.correction-ring", "0.5", "--dry-run"], capsys)
-    assert code != 0 and "--trainer.correction-weights ring" in err and "Traceback" not in err  # the ring with the gradient rule
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", "--stages.correction.ring", "2", "--dry-run"], capsys)
+    assert code != 0 and "--stages.correction.ring must be a number >= 0 and <= 1" in err and "Traceback" not in err
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", "--stages.correction.weights", "gradient",
+                          "--stages.correction.ring", "0.3", "--dry-run"], capsys)
+    assert code != 0 and "--stages.correction.weights ring" in err and "Traceback" not in err  # the ring with the gradient rule
 
 
 def test_gradient_magnitude_is_the_central_difference_slope_per_voxel():

@@ -1,7 +1,7 @@
 """The CUDA path against the CPU path: same numbers, and a run trained on a GPU loads on a CPU.
 
-These need a CUDA GPU (CI has none; they are run on one when one is at hand, see
-docs/experiments.md "The CUDA path"). Everything they compare is also tested on the CPU.
+These need a CUDA GPU (CI has none; they are run on one when one is at hand,
+``benchmarks/gpu_check.sh``). Everything they compare is also tested on the CPU.
 """
 
 import json
@@ -74,7 +74,7 @@ def test_model_outputs_cuda_match_cpu(tiny_scene):
 @pytest.mark.parametrize("method, preset, extra", [
     ("k-neas", "tiny", []),
     # the cpu preset's stages on a GPU: ASD-POCS warm start and bounds, occupancy grid, band correction
-    ("k-neas", "cpu", ["--trainer.epochs", "1", "--trainer.warm-start-steps", "10", "--trainer.correction-passes", "2"]),
+    ("k-neas", "cpu", ["--trainer.epochs", "1", "--stages.warm-start.steps", "10", "--stages.correction.passes", "2"]),
     ("neas-2m", "tiny", []),  # the hard selector
     ("naf", "tiny", []),  # a field without surfaces
     ("sart", "tiny", []),  # a classical method's run folder

@@ -1,4 +1,4 @@
-"""SURE-chosen smoothing (kneas_method.denoise): its pure functions against naive oracles (scipy's
+"""SURE-chosen smoothing (kneas_method.stages.denoise): its pure functions against naive oracles (scipy's
 Gaussian, a direct covariance, a loop-by-loop bilateral filter), SURE (exact and by Monte Carlo)
 against the true error on volumes with known noise, the choice on clean, noisy and textured volumes,
 and the stage in a run (metrics, checkpoint, settings)."""
@@ -13,7 +13,7 @@ import torch
 from scipy import ndimage
 
 from conftest import run, run_dir_of, sphere_scene
-from kneas_method.denoise import (BILATERAL_TRUNCATE, NOISE_SCALES, SIGMAS, bilateral, correlated_noise, discrepancy_smoothing,
+from kneas_method.stages.denoise import (BILATERAL_TRUNCATE, NOISE_SCALES, SIGMAS, bilateral, correlated_noise, discrepancy_smoothing,
                                   gaussian_blur, gaussian_taps, monte_carlo_sure, noise_autocovariance, robust_variance,
                                   shifted_pairs, sure, sure_smoothing)
 
@@ -94,7 +94,7 @@ def test_sure_tracks_the_true_error_of_each_smoothing():
 
 
 def _naive_bilateral(v: np.ndarray, sigma: float, range_std: float, guide: np.ndarray) -> np.ndarray:
-    """The separable cross-bilateral filter of ``kneas_method.denoise.bilateral``, voxel by voxel."""
+    """The separable cross-bilateral filter of ``kneas_method.stages.denoise.bilateral``, voxel by voxel."""
     r = max(1, int(BILATERAL_TRUNCATE * sigma + 0.5))
     out = v.astype(np.float64)
     for axis in range(3):
@@ -224,41 +224,37 @@ def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
     scene_path = save_naf(sphere_scene(SimulationConfig(n_voxel=24, voxel_mm=6.0, n_detector=32, n_train=16, n_val=2,
                                                         noise=True, photons=300.0)), tmp_path / "noisy.pickle")
     argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
-            "--output-dir", str(tmp_path / "out"), "--trainer.correction-passes", "1", "--trainer.epochs", "4",
-            "--trainer.correction-steps", "10", "--trainer.correction-points", "512", "--trainer.denoise", "sure",
-            "--trainer.denoise-steps", "10"]
+            "--output-dir", str(tmp_path / "out"), "--procedure", "paper", "--add-stages", "correction", "smoothing",
+            "--stages.correction.passes", "1", "--trainer.epochs", "4", "--stages.correction.steps", "10",
+            "--stages.correction.points", "512", "--stages.smoothing.steps", "10", "--stages.smoothing.points", "512"]
     code, out, err = run(argv, capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    record = metrics["denoising"]
+    record = metrics["stages"]["smoothing"]
     assert record["filter"] in ("none", "gaussian", "bilateral") and record["noise_std"] > 0 and "none" in record["sure"]
     assert record["noise_scale"] >= 1.0 and all(r["misfit_over_noise"] > 0 for r in record["misfit"])
     assert (record["filter"] == "none") == (record["misfit"] == [])
-    assert "denoise: " in out
+    assert "smoothing: " in out
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
-    assert state["extra"]["denoising"] == record
+    assert state["extra"]["stages"]["smoothing"] == record
 
 
-def test_denoise_settings_that_cannot_apply_are_refused_and_older_runs_keep_none(capsys):
+def test_smoothing_settings_and_older_runs(capsys):
     import dataclasses
 
     from kneas_method import presets, registry
-    from kneas_method.config import to_dict
-    from kneas_method.engine.loading import config_from_dict
+    from kneas_method.engine.legacy_config import upgrade
 
-    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "tiny", "--trainer.denoise", "sure", "--dry-run"], capsys)
-    assert code != 0 and "correction-passes" in err and "Traceback" not in err
     naf = presets.resolve(dataclasses.replace(registry.load("methods", "naf").config, method="naf", preset="cpu"))
-    assert naf.trainer.denoise == "none"  # the cpu preset's sure, where there is no correction stage
+    assert naf.stages.smoothing is None  # the procedure's, where there are no surfaces (and no correction)
     kneas = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="cpu"))
-    assert kneas.trainer.denoise == "sure"
-    saved = to_dict(kneas)
-    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if not k.startswith("denoise")}}  # before it existed
-    assert config_from_dict(older, "config.json").trainer.denoise == "none"
-    # the 64th stop's runs: Gaussians alone, fitted with a pass's steps and rate
-    gaussian = config_from_dict({**saved, "trainer": {k: v for k, v in saved["trainer"].items() if not k.startswith("denoise_")}},
-                                "config.json").trainer
-    assert (gaussian.denoise, gaussian.denoise_steps, gaussian.denoise_lr) == ("sure-gaussian", 75, 1e-4)
-    code, out, err = run(["k-neas", "--scene", "foot", "--trainer.denoise-steps", "-3", "--dry-run"], capsys)
-    assert code == 2 and "--trainer.denoise-steps must be a whole number >= 0, got -3" in err and "Traceback" not in err
+    assert kneas.stages.smoothing.rule == "sure"
+    base = {"method": "k-neas", "bounds_volume": "asd-pocs", "trainer": {"warm_start": "asd-pocs", "warm_start_steps": 300,
+                                                                          "correction_passes": 12, "correction_steps": 75}}
+    assert upgrade(base, lambda m, x: False)["stages"]["smoothing"] is None  # written before the smoothing existed: none
+    # the first smoothing's runs: Gaussians alone, fitted with a pass's steps and rate
+    gaussian = upgrade({**base, "trainer": {**base["trainer"], "denoise": "sure"}}, lambda m, x: False)["stages"]["smoothing"]
+    assert (gaussian["rule"], gaussian["steps"], gaussian["lr"]) == ("sure-gaussian", 75, 1e-4)
+    code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", "--stages.smoothing.steps", "-3", "--dry-run"], capsys)
+    assert code == 2 and "--stages.smoothing.steps must be a whole number >= 0, got -3" in err and "Traceback" not in err

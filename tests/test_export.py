@@ -404,10 +404,15 @@ def test_unfinished_checkpoints_are_named(files):
     prior = {"step": 50, "extra": {"stage": "prior", "complete": True, "total_steps": 50}}
     assert "prior model" in unfinished_notes(prior, config, run_dir)[0]
     trained = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "correction": None}}
-    with_passes = dataclasses.replace(config, trainer=dataclasses.replace(config.trainer, correction_passes=12))
+    from kneas_method.stages.correction import CorrectionConfig
+
+    with_passes = dataclasses.replace(config, stages=dataclasses.replace(config.stages, correction=CorrectionConfig(passes=12)),
+                                      skip_stages=())
     assert "12 correction passes" in unfinished_notes(trained, with_passes, run_dir)[0]
-    done = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "correction": []}}
+    done = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "stages": {"correction": {"passes": []}}}}
     assert unfinished_notes(done, with_passes, run_dir) == []
+    older = {"step": 2000, "extra": {"stage": "model", "complete": True, "total_steps": 2000, "correction": []}}  # before the stages
+    assert unfinished_notes(older, with_passes, run_dir) == []
 
 
 def test_the_exported_label_volume_is_the_one_evaluation_scores():

@@ -116,13 +116,13 @@ def _all_finite(folder):
 def test_nan_injected_into_the_model_mid_training(tiny_scene, tmp_path):
     trainer = _trainer(tiny_scene, tmp_path)
 
-    def poison(step):
-        if step == 6:
+    def poison(trainer):
+        if trainer.step == 6:
             with torch.no_grad():
                 next(trainer.model.parameters()).fill_(float("nan"))
 
     with pytest.raises(KneasError, match="non-finite losses in a row.*last good checkpoint is .*step-00000004.ckpt"):
-        trainer.train(on_step=poison)
+        trainer.train(step_hooks=[poison])
     assert [p.name for p in list_checkpoints(tmp_path / "checkpoints")] == ["step-00000004.ckpt"]
     _all_finite(tmp_path / "checkpoints")
 
@@ -130,13 +130,13 @@ def test_nan_injected_into_the_model_mid_training(tiny_scene, tmp_path):
 def test_nan_injected_at_the_last_step_is_not_a_finished_run(tiny_scene, tmp_path):
     trainer = _trainer(tiny_scene, tmp_path)
 
-    def poison(step):
-        if step == trainer.total_steps:
+    def poison(trainer):
+        if trainer.step == trainer.total_steps:
             with torch.no_grad():
                 next(trainer.model.parameters()).fill_(float("inf"))
 
     with pytest.raises(KneasError, match="non-finite parameters.*last good checkpoint is .*step-00000008.ckpt"):
-        trainer.train(on_step=poison)
+        trainer.train(step_hooks=[poison])
     assert not trainer.complete
     _all_finite(tmp_path / "checkpoints")
     # nothing on disk claims the stage is complete, so a resume redoes the last epoch from good weights

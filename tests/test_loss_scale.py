@@ -11,6 +11,8 @@ from kneas_method.classical.reconstruct import reconstruct
 from kneas_method.data.naf import load_naf
 from kneas_method.data.scene import Views
 from kneas_method.engine.loss_scale import LOSS_SCALE_TOP, loss_scale
+from kneas_method.stages.anchor import build_anchor
+from kneas_method.stages.materials_refit import refit_materials
 from kneas_method.engine.trainer import Trainer
 
 from conftest import simulated_foot
@@ -38,19 +40,20 @@ def test_naf_scale_is_its_own_unit_and_a_scanners_is_brought_to_it(foot):
     assert loss_scale(scanner) > 1.0
 
 
-def test_a_scans_unit_is_measured_once_per_projections(foot, monkeypatch):
+def test_the_pipeline_measures_a_scans_unit_once(foot, tmp_path, monkeypatch, capsys):
+    """One FDK for the unit, whatever the run trains (its prior included); no cache of it anywhere."""
     import kneas_method.classical.reconstruct as rec
+    from conftest import run
+    from kneas_method.data.naf import save_naf
 
     calls = []
     real = rec.reconstruct
     monkeypatch.setattr(rec, "reconstruct", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
-    scanner = in_units(foot, UNIT)
-    first = loss_scale(scanner)
-    assert loss_scale(scanner) == first and loss_scale(dataclasses.replace(scanner, name="again")) == first and calls == ["fdk"]
-    assert loss_scale(in_units(foot, 2 * UNIT)) == pytest.approx(2 * first, rel=1e-4) and len(calls) == 2  # other projections
-    moved = dataclasses.replace(scanner, geometry=dataclasses.replace(scanner.geometry, off_origin=(0.0, 0.0, 0.01)))
-    loss_scale(moved)
-    assert len(calls) == 3  # same projections, another geometry: measured again
+    path = save_naf(in_units(foot, UNIT), tmp_path / "scanner.pickle")
+    code, out, err = run(["k-neas", "--scene", str(path), "--preset", "tiny", "--trainer.epochs", "1", "--trainer.prior-epochs", "1",
+                          "--trainer.eval-every", "0", "--output-dir", str(tmp_path / "o")], capsys)
+    assert code == 0, err
+    assert calls == ["fdk"] and "losses measured in units of" in out  # the prior and the model share it
 
 
 def rays(n_obj: int, n_air: int) -> dict:
@@ -102,21 +105,22 @@ def test_the_anchor_of_a_scan_in_other_units_weighs_as_the_normalised_one(foot, 
         trainer = Trainer(cfg, foot, tmp_path / str(unit), epochs=1, device="cpu",
                           bounds=([unit * a for a in bounds[0]], [unit * b for b in bounds[1]]))
         trainer.model.loss_scale = unit  # as loss_scale gives a scan in these units
-        trainer.set_anchor(unit * volume, weight=0.5, points_per_step=300, occupancy_weight=0.1)
+        anchor = build_anchor(trainer, unit * volume, weight=0.5, points_per_step=300, occupancy_weight=0.1)
         with torch.no_grad():
-            losses.append(float(trainer.anchor_loss()))
+            losses.append(float(anchor.loss(trainer.model, trainer.generator)))
     assert losses[0] > 0 and losses[1] == pytest.approx(losses[0], rel=1e-4)
 
 
 def test_a_trainer_measures_a_scanners_scan_in_its_unit(foot, tmp_path):
     cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny"))
-    plain = Trainer(cfg, foot, tmp_path / "plain", epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
+    plain = Trainer(cfg, foot, tmp_path / "plain", epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]),
+                    loss_scale=loss_scale(foot))
     scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path / "scanner", epochs=1, device="cpu",
-                      bounds=([UNIT * 0.4, UNIT * 0.3, UNIT * 0.4], [0.0, UNIT * 0.4, UNIT * 0.7]))
+                      bounds=([UNIT * 0.4, UNIT * 0.3, UNIT * 0.4], [0.0, UNIT * 0.4, UNIT * 0.7]), loss_scale=loss_scale(in_units(foot, UNIT)))
     assert plain.model.loss_scale == 1.0
     assert scanner.model.loss_scale == pytest.approx(loss_scale(in_units(foot, UNIT)))
     volume = np.asarray(foot.image, dtype=np.float32) * UNIT
-    scanner.refit_materials(volume, [UNIT * 0.5, UNIT * 0.5], [0.0, UNIT * 0.5], steps=1, points_per_step=64, occupancy_weight=0.0)
+    refit_materials(scanner, volume, [UNIT * 0.5, UNIT * 0.5], [0.0, UNIT * 0.5], steps=1, points_per_step=64, occupancy_weight=0.0)
     assert scanner.model.loss_scale == pytest.approx(loss_scale(in_units(foot, UNIT)))  # the refitted model keeps it
 
 
@@ -149,7 +153,7 @@ def test_a_field_without_bounds_gives_its_attenuation_in_the_scans_unit():
 
 def test_a_trainer_gives_a_field_without_bounds_the_scans_unit(foot, tmp_path):
     cfg = presets.resolve(dataclasses.replace(registry.load("methods", "naf").config, method="naf", preset="tiny"))
-    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path, epochs=1, device="cpu")
+    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path, epochs=1, device="cpu", loss_scale=loss_scale(in_units(foot, UNIT)))
     assert float(scanner.model.attenuation_unit) == pytest.approx(scanner.model.loss_scale) and scanner.model.loss_scale > 1.0
 
 
@@ -158,7 +162,7 @@ def test_neas_wide_default_bounds_are_in_the_scans_unit(foot, tmp_path):
 
     cfg = presets.resolve(dataclasses.replace(registry.load("methods", "neas-1m").config, method="neas-1m", preset="tiny"))
     plain = Trainer(cfg, foot, tmp_path / "plain", epochs=1, device="cpu")  # the prior's trainer: no bounds given
-    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path / "scanner", epochs=1, device="cpu")
+    scanner = Trainer(cfg, in_units(foot, UNIT), tmp_path / "scanner", epochs=1, device="cpu", loss_scale=loss_scale(in_units(foot, UNIT)))
     alphas, betas = default_bounds(1)
     assert plain.model.bounds == (pytest.approx(alphas), pytest.approx(betas))
     unit = scanner.model.loss_scale
@@ -176,5 +180,5 @@ def test_the_wide_bounds_option_is_in_the_scans_unit(foot, tmp_path):
     assert plain.alphas == alphas and plain.betas == betas
     scanner = in_units(foot, UNIT)
     unit = loss_scale(scanner)
-    scaled = estimate_bounds(cfg, scanner, tmp_path, "cpu")
+    scaled = estimate_bounds(cfg, scanner, tmp_path, "cpu", loss_scale=unit)
     assert scaled.alphas == pytest.approx([unit * a for a in alphas]) and scaled.betas == pytest.approx([unit * b for b in betas])

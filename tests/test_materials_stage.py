@@ -1,4 +1,4 @@
-"""The materials of a noisy scan found again on its trained volume (engine.materials_stage)."""
+"""The materials of a noisy scan found again on its trained volume (stages.materials_refit)."""
 
 import dataclasses
 import json
@@ -10,11 +10,12 @@ import torch
 from conftest import tiny_config
 from kneas_method.data.naf import save_naf
 from kneas_method.data.simulate import SimulationConfig, simulate_phantom
-from kneas_method.engine import materials_stage as stage_mod
 from kneas_method.engine.bounds_stage import BoundsResult
 from kneas_method.engine.loading import load_run
 from kneas_method.engine.run_dir import create_run_dir, save_run_config
 from kneas_method.engine.trainer import Trainer
+from kneas_method.stages import RunState
+from kneas_method.stages.materials_refit import MaterialsRefitConfig, refit_bounds
 
 SMOOTHED = {"filter": "bilateral", "sigma_voxels": 3.0, "range_fraction": 0.1}
 
@@ -36,14 +37,21 @@ def three_levels(n=32):
     return np.array([0.2, 0.5, 0.9]), v.astype(np.float32)
 
 
-def trained(scene_path, tmp_path, K, smoothed=SMOOTHED, steps=80):
+def materials_stage(trainer, scene, config, bounds, run_dir, steps=80):
+    """The materials-refit stage run on ``trainer`` -> (the run's config, its bounds) afterwards."""
+    state = RunState(config=config, scene=scene, run_dir=run_dir, device="cpu", started=0.0, loss_scale=1.0, say=print,
+                     records=trainer.records, bounds=bounds, trainer=trainer)
+    MaterialsRefitConfig(steps=steps).setup().run(state)
+    return state.config, state.bounds
+
+
+def trained(scene_path, tmp_path, K, smoothed=SMOOTHED):
     """A finished tiny k-neas run with K materials over [0, 1] whose bounds came (or not) from the
     fallback: (config, scene, trainer, bounds, run_dir)."""
     from kneas_method.data.scenes import resolve_scene
 
     config = tiny_config("k-neas", scene_path, num_materials=K)
-    config = dataclasses.replace(config, model=dataclasses.replace(config.model, num_materials=K),
-                                 trainer=dataclasses.replace(config.trainer, materials_refit_steps=steps))
+    config = dataclasses.replace(config, model=dataclasses.replace(config.model, num_materials=K))
     scene = resolve_scene(str(scene_path))
     run_dir = create_run_dir(tmp_path, scene.name, "k-neas")
     save_run_config(run_dir, config)
@@ -62,13 +70,13 @@ def test_more_materials_on_the_trained_volume_replace_the_model(scene_path, tmp_
     monkeypatch.setattr("kneas_method.engine.evaluate.sample_volume", lambda model, geometry, **kw: target)
     config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1)
     old = trainer.model
-    config2, bounds2 = stage_mod.materials_stage(trainer, scene, config, bounds, run_dir)
+    config2, bounds2 = materials_stage(trainer, scene, config, bounds, run_dir)
     K = bounds2.K  # the three levels, and their blurred edges' values next to air (0 < mu < 0.2) may make a fourth
     assert K in (3, 4) and config2.num_materials == K and config2.model.num_materials == K
     assert trainer.model is not old and trainer.model.num_materials == K
-    b = np.array(trainer.materials_refit["boundaries"])
+    b = np.array(trainer.records["materials-refit"]["boundaries"])
     assert len(b) == K + 1 and np.unique(np.searchsorted(b, levels)).size == 3  # each level in a material of its own
-    assert trainer.materials_refit["refit"] and trainer.materials_refit["start_K"] == 1
+    assert trainer.records["materials-refit"]["refit"] and trainer.records["materials-refit"]["start_K"] == 1
     # bounds.json, config.json and the checkpoint name the new K, the start's bounds kept
     saved = json.loads((run_dir / "bounds.json").read_text())
     assert saved["K"] == K and saved["start_bounds"]["K"] == 1 and saved["smoothed"] == SMOOTHED
@@ -84,9 +92,9 @@ def test_more_materials_on_the_trained_volume_replace_the_model(scene_path, tmp_
     assert np.mean((mu - target) ** 2) < 0.25 * np.mean(target ** 2)
     # a resumed run does not redo it
     trainer2 = Trainer(config2, scene, run_dir, epochs=1, device="cpu", bounds=(bounds2.alphas, bounds2.betas))
-    assert trainer2.resume() is not None and trainer2.materials_refit["K"] == K
+    assert trainer2.resume() is not None and trainer2.records["materials-refit"]["K"] == K
     same = trainer2.model
-    assert stage_mod.materials_stage(trainer2, scene, config2, bounds2, run_dir) == (config2, bounds2) and trainer2.model is same
+    assert materials_stage(trainer2, scene, config2, bounds2, run_dir) == (config2, bounds2) and trainer2.model is same
 
 
 def test_as_many_materials_keep_the_model_and_clean_starts_skip_the_stage(scene_path, tmp_path, monkeypatch):
@@ -96,47 +104,44 @@ def test_as_many_materials_keep_the_model_and_clean_starts_skip_the_stage(scene_
     config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=4)  # the trained volume shows 3 or 4
     before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
     model = trainer.model
-    assert stage_mod.materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
+    assert materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
     assert trainer.model is model and all(torch.equal(before[k], v) for k, v in model.state_dict().items())
-    assert trainer.materials_refit["K"] <= 4 and not trainer.materials_refit["refit"] and calls == [1]
+    assert trainer.records["materials-refit"]["K"] <= 4 and not trainer.records["materials-refit"]["refit"] and calls == [1]
     assert json.loads((run_dir / "bounds.json").read_text())["K"] == 4
-    # bounds from the histogram's peaks (a clean start) or the stage switched off: nothing is computed
-    for smoothed, steps in ((None, 80), (SMOOTHED, 0)):
-        config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1, smoothed=smoothed, steps=steps)
-        assert stage_mod.materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
-        assert trainer.materials_refit is None and trainer.model.num_materials == 1
+    # bounds from the histogram's peaks (a clean start): nothing is computed
+    config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1, smoothed=None)
+    assert materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
+    assert "materials-refit" not in trainer.records and trainer.model.num_materials == 1
     assert calls == [1]
 
 
 def test_an_interrupted_materials_stage_is_redone_on_resume(tiny_scene, tmp_path, capsys, monkeypatch):
     from conftest import run, run_dir_of
-    from kneas_method.engine import neural_pipeline
+    from kneas_method.stages.materials_refit import MaterialsRefit
 
-    real, calls = neural_pipeline.materials_stage, []
+    real, calls = MaterialsRefit.run, []
 
-    def interrupted(*args, **kw):
+    def interrupted(self, state):
         calls.append(1)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(neural_pipeline, "materials_stage", interrupted)
+    monkeypatch.setattr(MaterialsRefit, "run", interrupted)
     args = ["k-neas", "--scene", str(tiny_scene), "--preset", "tiny", "--trainer.epochs", "1", "--trainer.eval-every", "0",
-            "--bounds-source", "wide", "--output-dir", str(tmp_path / "o")]
+            "--bounds-source", "wide", "--add-stages", "materials-refit", "--output-dir", str(tmp_path / "o")]
     code, out, err = run(args, capsys)
     run_dir = run_dir_of(out)
-    assert code == 130 and calls == [1] and "interrupted while the materials were found again" in out
+    assert code == 130 and calls == [1] and "interrupted during the materials-refit stage" in out
     assert f"kneas-train --resume {run_dir}" in out.replace("\n", "") and not (run_dir / "metrics.json").exists()
-    monkeypatch.setattr(neural_pipeline, "materials_stage", lambda *a, **kw: calls.append(2) or real(*a, **kw))
+    monkeypatch.setattr(MaterialsRefit, "run", lambda self, state: calls.append(2) or real(self, state))
     code, out, err = run(["--resume", str(run_dir)], capsys)
     assert code == 0 and calls == [1, 2] and (run_dir / "metrics.json").is_file(), err
 
 
 def test_a_run_stopped_between_the_refits_checkpoint_and_bounds_json_resumes_with_the_new_k(scene_path, tmp_path, monkeypatch):
-    from kneas_method.engine.materials_stage import refit_bounds
-
     _, target = three_levels()
     monkeypatch.setattr("kneas_method.engine.evaluate.sample_volume", lambda model, geometry, **kw: target)
     config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1)
-    config2, bounds2 = stage_mod.materials_stage(trainer, scene, config, bounds, run_dir)
+    config2, bounds2 = materials_stage(trainer, scene, config, bounds, run_dir)
     assert bounds2.K > 1
     # the stop: the checkpoint holds the new model, bounds.json and config.json still the start's K
     (run_dir / "bounds.json").write_text(json.dumps(bounds.to_json()))
@@ -147,5 +152,5 @@ def test_a_run_stopped_between_the_refits_checkpoint_and_bounds_json_resumes_wit
     k = mended.K  # the trainer rebuilt with that K resumes from the checkpoint
     config3 = dataclasses.replace(config, num_materials=k, model=dataclasses.replace(config.model, num_materials=k))
     resumed = Trainer(config3, scene, run_dir, epochs=1, device="cpu", bounds=(mended.alphas, mended.betas))
-    assert resumed.resume() is not None and resumed.materials_refit["K"] == k
+    assert resumed.resume() is not None and resumed.records["materials-refit"]["K"] == k
     assert refit_bounds(mended, run_dir, config.method) is mended  # nothing more to mend

@@ -107,7 +107,8 @@ def test_cpu_preset_narrows_the_attenuation_networks_and_older_runs_keep_their_w
         assert first.out_features == 32
         saved = to_dict(cpu)
         assert config_from_dict(saved, "config.json").model.attenuation_options == {"hidden_dim": 32}
-        older = {**saved, "model": {**saved["model"], "attenuation_options": {}}}
+        older = {"method": name, "preset": "cpu", "model": {**saved["model"], "attenuation_options": {}},
+                 "trainer": {"epochs": 80, "warm_start_steps": 300}}  # written before the cpu preset's width, in the flat settings
         assert config_from_dict(older, "config.json").model.attenuation_options == {"hidden_dim": 64}
     told = dataclasses.replace(base, preset="cpu", model=dataclasses.replace(base.model, attenuation_options={"hidden_dim": 48}))
     assert presets.resolve(told).model.attenuation_options == {"hidden_dim": 48}
@@ -119,7 +120,7 @@ def test_cpu_preset_narrows_the_attenuation_networks_and_older_runs_keep_their_w
 
 def test_cpu_preset_hash_grid_reaches_half_a_voxel_and_older_runs_keep_their_scale():
     """The cpu preset's finest hash-grid level has about two cells per voxel of a 128^3 grid
-    (scale 1.75: 263 across the box; 1.6, 168, before the 72nd stop); the user's scale wins; a
+    (scale 1.75: 263 across the box; 1.6, 168, before 2026-11-29); the user's scale wins; a
     config.json written with the old scale is read at it, so the run loads as it was trained."""
     from kneas_method.engine.loading import config_from_dict
     from kneas_method.fields.hash_grid import HashGridConfig, hash_grid_layout
@@ -148,10 +149,10 @@ def test_cpu_preset_scores_projections_of_the_volume_unless_told_not_to():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cpu = presets.resolve(c)
     assert cpu.trainer.eval_projections == "volume"
-    assert any("Joseph projector" in note for note in presets.procedure_notes(cpu))
+    assert any("Joseph projector" in note for note in presets.describe(cpu))
     paper = presets.resolve(dataclasses.replace(c, preset="paper"))
     assert paper.trainer.eval_projections == "rendered"  # the paper's evaluation
-    assert not any("Joseph" in note for note in presets.procedure_notes(paper))
+    assert not any("Joseph" in note for note in presets.describe(paper))
     told = dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, eval_projections="rendered"))
     assert presets.resolve(told).trainer.eval_projections == "rendered"  # the user's choice wins
     with pytest.raises(ConfigError, match="eval_projections"):
@@ -162,14 +163,14 @@ def test_cpu_preset_drops_the_rate_late_unless_told_otherwise():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cpu = presets.resolve(c)
     assert cpu.trainer.lr_decay_at == 0.85
-    assert any("after 85% of the steps" in note for note in presets.procedure_notes(cpu))
+    assert any("lr_decay_at 0.85" in note for note in presets.describe(cpu))
     paper = presets.resolve(dataclasses.replace(c, preset="paper"))
     assert paper.trainer.lr_decay_at == 0.5  # SPEC: x0.1 after 500 of 1000 epochs
-    assert not any("learning rate" in note for note in presets.procedure_notes(paper))
+    assert not any("lr_decay_at" in note for note in presets.describe(paper))
     told = dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, lr_decay_at=0.5))
     assert presets.resolve(told).trainer.lr_decay_at == 0.5  # the user's choice wins
     for bad in (1.5, -0.1, "late", True):
-        with pytest.raises(ConfigError, match="lr_decay_at"):
+        with pytest.raises(ConfigError, match="lr.decay.at"):
             presets.resolve(dataclasses.replace(c, trainer=dataclasses.replace(c.trainer, lr_decay_at=bad)))
 
 
@@ -177,21 +178,21 @@ def test_cpu_preset_picks_k_by_histogram_peaks_unless_told_otherwise():
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cpu = presets.resolve(c)
     assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std, cpu.bounds_gmm_restarts) == (8, "peaks", 0.0, 3)
-    note = next(n for n in presets.procedure_notes(cpu) if n.startswith("materials:"))
-    assert note.startswith("materials: one per peak") and "K = 1..8" in note and "the best of 3 GMM starts" in note
-    assert any(n.startswith("bounds: from the peaks of the ASD-POCS reconstruction's histogram") for n in presets.procedure_notes(cpu))
+    note = next(n for n in presets.describe(cpu) if "bounds:" in n)
+    assert "one material per histogram peak" in note and "K = 1..8" in note and "the best of 3 GMM starts" in note
+    assert note.endswith("on the voxel values of the ASD-POCS start")
     valleys = presets.resolve(dataclasses.replace(c, bounds_k_rule="bic-valleys"))
-    note = next(n for n in presets.procedure_notes(valleys) if n.startswith("materials:"))
-    assert note.startswith("materials: K = 1..8") and "--bounds-gmm-restarts 1" in note
+    note = next(n for n in presets.describe(valleys) if "bounds:" in n)
+    assert "K by the lowest BIC with every boundary a density valley, K = 1..8" in note
     # a mixture boundary rule asked for (no K rule given): the preset's mixture K rule, not an error
     assert presets.resolve(dataclasses.replace(c, bounds_method="quantile")).bounds_k_rule == "bic-valleys"
     for name in ("paper", "tiny"):  # the paper's K = 1..4 by BIC, sklearn's default regulariser, one start
         other = presets.resolve(dataclasses.replace(c, preset=name))
         assert (other.bounds_max_materials, other.bounds_k_rule, other.bounds_min_std, other.bounds_gmm_restarts) == (4, "bic", 0.0, 1)
-        assert not any(note.startswith("materials:") for note in presets.procedure_notes(other))
+        assert any("bounds: K by BIC, K = 1..4, on the voxel values of a NeAS-1M prior" in n for n in presets.describe(other))
     told = presets.resolve(dataclasses.replace(c, bounds_max_materials=4, bounds_k_rule="bic", bounds_min_std=0.0, bounds_gmm_restarts=1))
     assert (told.bounds_max_materials, told.bounds_k_rule, told.bounds_min_std, told.bounds_gmm_restarts) == (4, "bic", 0.0, 1)  # the user wins
-    assert not any(note.startswith("materials:") for note in presets.procedure_notes(told))
+    assert any("bounds: K by BIC, K = 1..4, on the voxel values of the ASD-POCS start" in n for n in presets.describe(told))
     with pytest.raises(ConfigError, match="bounds-gmm-restarts"):
         presets.resolve(dataclasses.replace(c, bounds_gmm_restarts=0))
     with pytest.raises(ConfigError, match="bounds-max-materials"):
@@ -247,8 +248,8 @@ def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
 
     c = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu", bounds_k_rule="peaks")
     cfg = presets.resolve(c)
-    note = next(n for n in presets.procedure_notes(cfg) if n.startswith("materials:"))
-    assert note.startswith("materials: one per peak of the volume's histogram") and "--bounds-k-rule bic" in note
+    note = next(n for n in presets.describe(cfg) if "bounds:" in n)
+    assert "one material per histogram peak" in note
     with pytest.raises(ConfigError, match="bounds-method bayes"):
         presets.resolve(dataclasses.replace(c, bounds_method="bayes"))
     presets.resolve(dataclasses.replace(c, bounds_method="bayes", num_materials=3))  # K given: the rule is not used
@@ -257,7 +258,7 @@ def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
     volume[: 30000] = 0.3 + rng.normal(0, 1e-3, 30000)  # two TV plateaus on a partial-volume smear
     volume[30000: 36000] = 0.8 + rng.normal(0, 1e-3, 6000)
     volume[36000: 40000] = rng.uniform(0.05, 0.85, 4000)
-    result = estimate_bounds(cfg, sphere_scene(), tmp_path, torch.device("cpu"), volume=volume.reshape(40, 40, 40))
+    result = estimate_bounds(cfg, sphere_scene(), tmp_path, torch.device("cpu"), start=(volume.reshape(40, 40, 40), "asd-pocs"))
     assert result.K == 2 and result.details["k_chosen_by"] == "peaks" and "histogram peaks" in result.source
     assert 0.3 < result.betas[1] < 0.8 and result.details["gmm"]["peaks"] == pytest.approx([0.3, 0.8], abs=0.004)
     assert result.details["first_label_threshold"] == pytest.approx(0.15, abs=0.002)  # half material 1's level
@@ -267,7 +268,7 @@ def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
 
     levels, _, noisy = noisy_nested_spheres()
     noisy_cfg = dataclasses.replace(cfg, bounds_max_materials=6, bounds_gmm_restarts=1)
-    result = estimate_bounds(noisy_cfg, sphere_scene(), tmp_path, torch.device("cpu"), volume=noisy)
+    result = estimate_bounds(noisy_cfg, sphere_scene(), tmp_path, torch.device("cpu"), start=(noisy, "asd-pocs"))
     assert result.details["smoothed"] == {"filter": "bilateral", "sigma_voxels": 3.0, "range_fraction": 0.1}
     assert result.details["k_chosen_by"] == "bic-valleys on the ASD-POCS after a bilateral filter (the histogram has 1 peak)"
     assert result.source == "gmm (gmm) on the ASD-POCS"
@@ -297,6 +298,6 @@ def test_a_bounds_warning_is_said_once_not_raised_again_as_a_python_warning(tmp_
     volume = np.random.default_rng(3).normal(0.5, 0.1, 40 ** 3).clip(0.01)  # one material, forced into two: no valley
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a Python warning would fail here
-        result = estimate_bounds(cfg, sphere_scene(), tmp_path, torch.device("cpu"), volume=volume.reshape(40, 40, 40))
+        result = estimate_bounds(cfg, sphere_scene(), tmp_path, torch.device("cpu"), start=(volume.reshape(40, 40, 40), "asd-pocs"))
     said = [line for line in capsys.readouterr().out.splitlines() if "bounds warning:" in line]
     assert result.K == 2 and len(said) >= 1 and any("midpoint" in line for line in said)

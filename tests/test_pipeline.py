@@ -205,7 +205,7 @@ def test_learning_rate_drops_after_the_given_fraction_of_the_steps(tiny_scene, t
     scene = load_naf(tiny_scene)
     trainer = Trainer(cfg, scene, tmp_path, epochs=4, device="cpu", label="model")
     rates = []
-    trainer.train(on_step=lambda step: rates.append(trainer.optimizer.param_groups[0]["lr"]))
+    trainer.train(step_hooks=[lambda t: rates.append(t.optimizer.param_groups[0]["lr"])])
     n = trainer.total_steps
     drop = round(0.75 * n)
     assert len(rates) == n and 0 < drop < n

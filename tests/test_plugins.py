@@ -81,6 +81,30 @@ PLUGIN = textwrap.dedent(
         config=TrainConfig(method="demo-deep", model=ModelConfig(field="demo-deep", attenuation="shared", floater=True)),
         description="demo plugin method: K-NeAS on the plugin's own surface field",
     )
+
+
+    # a stage of its own, after training, and a procedure that runs it
+    from kneas_method.stages import PAPER, Procedure
+    from kneas_method.stages.base import Stage, StageConfig
+
+
+    @dataclass
+    class MarkStageConfig(StageConfig):
+        _target = "kneas_demo_plugin:MarkStage"
+        name = "demo-mark"
+        phase = "after-training"
+        label: str = "marked"
+
+
+    class MarkStage(Stage):
+        def run(self, state):
+            state.records[self.name] = {"label": self.config.label, "step": state.trainer.step,
+                                        "materials": int(state.trainer.model.num_materials)}
+            state.say(f"demo-mark: {self.config.label}")
+
+
+    procedure = Procedure(name="demo-proc", description="the paper's, then a mark", stages=("demo-mark",),
+                          settings=PAPER.settings)
     '''
 )
 
@@ -94,6 +118,12 @@ demo-deep = kneas_demo_plugin:DeepSDFConfig
 [kneas.methods]
 demo-share = kneas_demo_plugin:method
 demo-deep = kneas_demo_plugin:deep_method
+
+[kneas.stages]
+demo-mark = kneas_demo_plugin:MarkStageConfig
+
+[kneas.procedures]
+demo-proc = kneas_demo_plugin:procedure
 """
 
 
@@ -177,9 +207,37 @@ def test_plugin_surface_field_trains_as_an_sdf_method(plugin, tmp_path, capsys):
     assert field_has_surfaces(spec.config.model) and presets.k_from_data(spec.config)
     scene = simulated_foot(tmp_path, "plugfoot", 16, 15.0, n_train=4)
     code, out, err = run(["demo-deep", "--scene", str(scene), "--preset", "tiny", "--output-dir", str(tmp_path / "out"),
-                          "--bounds-volume", "fdk"], capsys)
+                          "--procedure", "refine-classical", "--stages.classical-start.algorithm", "fdk",
+                          "--skip-stages", "correction", "smoothing", "materials-refit", "--stages.warm-start.steps", "5"], capsys)
     assert code == 0, err
     assert "bounds: GMM (gmm) on" in out and "BIC" in out
     metrics = json.loads((run_dir_of(out) / "metrics.json").read_text())
     assert metrics["num_materials"] >= 1 and len(metrics["alphas"]) == metrics["num_materials"]
     assert np.isfinite(metrics["psnr3d"])
+
+
+def test_a_plugin_stage_runs_in_a_procedure(plugin, tmp_path, capsys):
+    """A stage registered by a plugin (``kneas.stages``) runs in the plugin's procedure (``kneas.procedures``),
+    is added to another with ``--add-stages``, takes its settings from a config file, and is recorded."""
+    from conftest import run, run_dir_of, simulated_foot
+
+    assert "demo-mark" in registry.names("stages") and "demo-proc" in presets.procedures()
+    scene = simulated_foot(tmp_path, "markfoot", 16, 15.0, n_train=4)
+    common = ["--scene", str(scene), "--preset", "tiny", "--trainer.epochs", "1", "--trainer.eval-every", "0"]
+    code, out, err = run(["k-neas", *common, "--procedure", "demo-proc", "--output-dir", str(tmp_path / "a")], capsys)
+    assert code == 0, err
+    assert "procedure: demo-proc: the paper's, then a mark" in out and "demo-mark: marked" in out
+    run_dir = run_dir_of(out)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["procedure"] == "demo-proc" and metrics["stages"]["demo-mark"]["label"] == "marked"
+    assert metrics["stages"]["demo-mark"]["step"] == metrics["steps"]  # after training
+    # added to the paper's procedure, with its settings from a config file
+    saved = json.loads((run_dir / "config.json").read_text())
+    saved.update(procedure="paper", add_stages=["demo-mark"], output_dir=str(tmp_path / "b"))
+    saved["stages"]["plugins"] = {"demo-mark": {"label": "from the file"}}
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(saved))
+    code, out, err = run(["--config", str(path)], capsys)
+    assert code == 0, err
+    metrics = json.loads((run_dir_of(out) / "metrics.json").read_text())
+    assert metrics["procedure"] == "paper" and metrics["stages"]["demo-mark"]["label"] == "from the file"

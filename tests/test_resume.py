@@ -31,8 +31,8 @@ def only_run_dir(parent: Path) -> Path:
 
 @pytest.mark.parametrize("procedure", [
     [],  # the paper's: prior -> GMM -> model
-    ["--bounds-volume", "fdk", "--trainer.warm-start", "fdk", "--trainer.warm-start-steps", "10",
-     "--trainer.warm-start-anchor", "0.01"],  # the cpu preset's procedure (FDK for speed)
+    ["--procedure", "refine-classical", "--stages.classical-start.algorithm", "fdk", "--stages.warm-start.steps", "10",
+     "--skip-stages", "correction", "smoothing", "materials-refit", "time-budget"],  # the cpu preset's procedure (FDK for speed)
 ], ids=["prior-bounds", "fdk-bounds-warm-start"])
 def test_interrupt_then_resume_matches_straight_run(tmp_path, procedure):
     scene = tmp_path / "tinyfoot.pickle"

@@ -12,7 +12,7 @@ from kneas_method.data.naf import load_naf, save_naf
 from kneas_method.data.scene import Views
 from kneas_method.classical.options import ReconstructionOptions
 from kneas_method.data.truncation import ROW_OBJECT_SHARE, axial_truncation, lateral_truncation, truncation_warning
-from kneas_method.engine.classical_volume import WIDE_START_ITERATIONS, classical_volume, start_options
+from kneas_method.stages.classical_start import WIDE_START_ITERATIONS, classical_volume, start_options
 
 from conftest import run, run_dir_of, simulated_foot
 
@@ -221,8 +221,8 @@ def test_a_cached_start_with_another_iteration_count_is_computed_again(tmp_path)
 
 def test_a_neural_runs_start_is_run_further_where_the_object_is_wider_than_the_view(tmp_path):
     from kneas_method import registry
-    from kneas_method.data.truncation import FittingBox
-    from kneas_method.engine.neural_pipeline import NeuralPipeline
+    from kneas_method.stages import RunState
+    from kneas_method.stages.classical_start import ClassicalStartConfig
 
     scene = load_naf(simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4))
     config = registry.load("methods", "k-neas").config
@@ -230,5 +230,7 @@ def test_a_neural_runs_start_is_run_further_where_the_object_is_wider_than_the_v
     for wide, count in ((False, 10), (True, 40)):
         run_dir = tmp_path / f"run-{wide}"
         run_dir.mkdir()
-        pipeline = NeuralPipeline(config, scene=scene, run_dir=run_dir, device="cpu", fitting=FittingBox(scene, wider_than_view=wide))
-        assert pipeline.classical("asd-pocs").settings["iterations"] == count
+        state = RunState(config=config, scene=scene, run_dir=run_dir, device="cpu", started=0.0, loss_scale=1.0, say=print,
+                         fitting_wider_than_view=wide)
+        ClassicalStartConfig(algorithm="asd-pocs").setup().run(state)
+        assert state.records["classical-start"]["settings"]["iterations"] == count and state.start[1] == "asd-pocs"

@@ -1,4 +1,5 @@
-"""FDK bounds and the FDK warm start (options beside the paper's procedure; the cpu preset's defaults)."""
+"""The classical start's stages (options beside the paper's procedure; the refine-classical procedure's):
+bounds on the start's volume, the warm start and the anchor."""
 
 import dataclasses
 import json
@@ -10,7 +11,9 @@ from scipy import ndimage
 
 from kneas_method import presets, registry
 from kneas_method.data.naf import load_naf
-from kneas_method.engine.anchor import edge_trust, label_interior
+from kneas_method.stages.anchor import build_anchor, edge_trust, label_interior
+from kneas_method.stages.volume_fit import fit_in_region
+from kneas_method.stages.warm_start import warm_start
 from kneas_method.engine.evaluate import sample_volume
 from kneas_method.engine.loading import load_run
 from kneas_method.engine.trainer import Trainer
@@ -31,6 +34,10 @@ def _tiny_config(method="k-neas", **trainer):
     return presets.resolve(cfg)
 
 
+def anchor_loss(trainer, anchor):
+    return anchor.loss(trainer.model, trainer.generator)
+
+
 def test_warm_start_fits_the_volume_and_leaves_training_state_alone(small_scene, tmp_path):
     scene = load_naf(small_scene)
     cfg = _tiny_config()
@@ -40,15 +47,15 @@ def test_warm_start_fits_the_volume_and_leaves_training_state_alone(small_scene,
     sampler = trainer.datamanager.state_dict()
     gen = trainer.generator.get_state().clone()
     opt_state = trainer.optimizer.state_dict()["state"]
-    seconds = trainer.warm_start(target - 0.05, steps=150, points_per_step=4096, what="test")  # negatives are clipped
+    seconds = warm_start(trainer, target - 0.05, steps=150, points_per_step=4096, what="test")  # negatives are clipped
     after = psnr3d(sample_volume(trainer.model, scene.geometry), target)
     assert after > before + 5.0, (before, after)
-    assert seconds > 0 and trainer.warm_start_time_s == seconds and trainer.step == 0
+    assert seconds > 0 and trainer.step == 0
     assert trainer.datamanager.state_dict()["position"] == sampler["position"]
     assert torch.equal(trainer.generator.get_state(), gen) and opt_state == {} == trainer.optimizer.state_dict()["state"]
     assert "warm_start_volume" in trainer.history
     with pytest.raises(KneasError, match="grid"):
-        trainer.warm_start(target[:-1], steps=1, points_per_step=16)
+        warm_start(trainer, target[:-1], steps=1, points_per_step=16)
 
 
 def test_warm_start_is_deterministic(small_scene, tmp_path):
@@ -57,7 +64,7 @@ def test_warm_start_is_deterministic(small_scene, tmp_path):
     vols = []
     for i in range(2):
         tr = Trainer(cfg, scene, tmp_path / str(i), epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
-        tr.warm_start(np.asarray(scene.image), steps=5, points_per_step=512)
+        warm_start(tr, np.asarray(scene.image), steps=5, points_per_step=512)
         vols.append(sample_volume(tr.model, scene.geometry))
     assert np.array_equal(vols[0], vols[1])
 
@@ -66,28 +73,28 @@ def test_anchor_loss_is_the_weighted_mse_to_the_prior_volume(small_scene, tmp_pa
     scene = load_naf(small_scene)
     target = np.asarray(scene.image, dtype=np.float32)
     trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
-    trainer.set_anchor(target - 0.05, weight=0.5, points_per_step=300)  # negatives are clipped, as in the warm start
+    anchor = build_anchor(trainer, target - 0.05, weight=0.5, points_per_step=300)  # negatives are clipped, as in the warm start
     draw = torch.Generator().manual_seed(0)
     draw.set_state(trainer.generator.get_state())
     idx = torch.randint(0, target.size, (300,), generator=draw)
     points = scene.geometry.voxel_centres().reshape(-1, 3)[idx]
     with torch.no_grad():
         expected = 0.5 * torch.mean((trainer.model.query(points)["mu"] - torch.as_tensor(np.clip(target - 0.05, 0, None)).reshape(-1)[idx]) ** 2)
-        assert float(trainer.anchor_loss()) == pytest.approx(float(expected), rel=1e-6)
+        assert float(anchor_loss(trainer, anchor)) == pytest.approx(float(expected), rel=1e-6)
     assert torch.equal(trainer.generator.get_state(), draw.get_state())  # drawn from the run's generator: resumable
     with pytest.raises(KneasError, match="grid"):
-        trainer.set_anchor(target[:-1], weight=0.5, points_per_step=10)
-    trainer.set_anchor(target, weight=0.0, points_per_step=10)
-    assert trainer.anchor is None
+        anchor = build_anchor(trainer, target[:-1], weight=0.5, points_per_step=10)
+    anchor = build_anchor(trainer, target, weight=0.0, points_per_step=10)
+    assert anchor is None
 
 
 def test_anchor_edge_contrast_weighs_each_voxel_by_its_trust(small_scene, tmp_path):
     scene = load_naf(small_scene)
     target = np.asarray(scene.image, dtype=np.float32)
     trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
-    trainer.set_anchor(target, weight=0.5, points_per_step=300, edge_contrast=0.1)
+    anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300, edge_contrast=0.1)
     trust = edge_trust(target, 0.1).reshape(-1)
-    assert np.array_equal(trainer.anchor.value_weights.numpy(), trust) and trust.min() < 0.5 and trust.max() == 1.0
+    assert np.array_equal(anchor.value_weights.numpy(), trust) and trust.min() < 0.5 and trust.max() == 1.0
     draw = torch.Generator().manual_seed(0)
     draw.set_state(trainer.generator.get_state())
     idx = torch.randint(0, target.size, (300,), generator=draw)
@@ -95,10 +102,10 @@ def test_anchor_edge_contrast_weighs_each_voxel_by_its_trust(small_scene, tmp_pa
     with torch.no_grad():
         squared = (trainer.model.query(points)["mu"] - torch.as_tensor(target).reshape(-1)[idx]) ** 2
         expected = 0.5 * torch.mean(torch.as_tensor(trust)[idx] * squared)
-        assert float(trainer.anchor_loss()) == pytest.approx(float(expected), rel=1e-6)
+        assert float(anchor_loss(trainer, anchor)) == pytest.approx(float(expected), rel=1e-6)
         assert float(expected) < float(0.5 * torch.mean(squared))  # the edges count less than in the plain MSE
-    trainer.set_anchor(target, weight=0.5, points_per_step=300)
-    assert trainer.anchor.value_weights is None
+    anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300)
+    assert anchor.value_weights is None
 
 
 def _trainer_with_a_grid(scene_path, tmp_path):
@@ -121,25 +128,25 @@ def test_anchor_in_the_hull_draws_only_there_with_the_box_loss_in_expectation(sm
     inside = trainer.model.occupied(centres) > 0
     target = np.asarray(scene.image, dtype=np.float32).reshape(-1) * inside.numpy()  # 0 where mu is 0 whatever the field
     target = target.reshape(scene.image.shape)
-    trainer.set_anchor(target, weight=0.5, points_per_step=300, region="hull")
-    hull = trainer.anchor
+    anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300, region="hull")
+    hull = anchor
     share = float(inside.float().mean())
     assert 0.1 < share < 0.9 and len(hull.points) == int(inside.sum())
     assert bool((trainer.model.occupied(hull.points) > 0).all())  # every draw lands in the hull
     assert hull.weight == pytest.approx(0.5 * share)
     with torch.no_grad():  # the whole-set losses: the hull's (weight x share) equals the box's
         in_hull = hull.weight * torch.mean((trainer.model.query(hull.points)["mu"] - hull.targets) ** 2)
-        trainer.set_anchor(target, weight=0.5, points_per_step=300)
-        box = trainer.anchor
+        anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300)
+        box = anchor
         in_box = box.weight * torch.mean((trainer.model.query(box.points)["mu"] - box.targets) ** 2)
     assert len(box.points) == target.size and float(in_hull) == pytest.approx(float(in_box), rel=1e-5)
     with pytest.raises(KneasError, match="box or hull"):
-        trainer.set_anchor(target, weight=0.5, points_per_step=300, region="everywhere")
+        anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300, region="everywhere")
 
 
 
 def test_anchor_outside_skip_queries_only_the_grid_with_the_same_gradient_there(small_scene, tmp_path):
-    """``anchor_outside`` ``skip``: the field is queried only at the draws inside the occupancy
+    """The anchor (``skip_outside``, always in a run): the field is queried only at the draws inside the occupancy
     grid; the value term (loss and gradient) is the one a query of every draw gives, and the label
     term is that query's without the draws outside the grid (the same mean's denominator)."""
     scene, trainer = _trainer_with_a_grid(small_scene, tmp_path)
@@ -155,15 +162,15 @@ def test_anchor_outside_skip_queries_only_the_grid_with_the_same_gradient_there(
         return float(loss.detach()), [torch.zeros_like(p) if g is None else g for p, g in zip(params, grads)]
 
     for occupancy_weight in (0.0, 0.3):
-        trainer.set_anchor(target, weight=0.5, points_per_step=400, occupancy_weight=occupancy_weight, outside="skip")
-        a = trainer.anchor
+        anchor = build_anchor(trainer, target, weight=0.5, points_per_step=400, occupancy_weight=occupancy_weight, skip_outside=True)
+        a = anchor
         assert torch.equal(a.outside, ~inside) and 0.1 < float(inside.float().mean()) < 0.9
         state = trainer.generator.get_state()
         sizes = []
         query = trainer.model.query
         trainer.model.query = lambda points: sizes.append(len(points)) or query(points)
         try:
-            skip_loss, skip_grads = loss_and_grads(trainer.anchor_loss)
+            skip_loss, skip_grads = loss_and_grads(lambda: anchor_loss(trainer, anchor))
         finally:
             trainer.model.query = query
         trainer.generator.set_state(state)
@@ -186,10 +193,8 @@ def test_anchor_outside_skip_queries_only_the_grid_with_the_same_gradient_there(
         for got, want in zip(skip_grads, want_grads):
             assert torch.allclose(got, want, rtol=1e-4, atol=1e-10)
         assert any(float(g.abs().sum()) > 0 for g in skip_grads)
-    trainer.set_anchor(target, weight=0.5, points_per_step=400)
-    assert trainer.anchor.outside is None  # set_anchor's own default queries every draw
-    with pytest.raises(KneasError, match="labels or skip"):
-        trainer.set_anchor(target, weight=0.5, points_per_step=400, outside="never")
+    anchor = build_anchor(trainer, target, weight=0.5, points_per_step=400, skip_outside=False)
+    assert anchor.outside is None  # the naive version queries every draw
 
 def test_volume_fit_queried_only_in_the_grid_keeps_every_draws_mean(small_scene, tmp_path):
     """``volume_loss_dict(queried=...)``: the field is queried only at the points inside the grid;
@@ -244,29 +249,28 @@ def test_volume_fit_queried_only_in_the_grid_keeps_every_draws_mean(small_scene,
 
 
 def test_fits_to_a_volume_query_only_the_grid_unless_told(small_scene, tmp_path, monkeypatch):
-    """``fit_outside`` ``skip`` (default): the warm start and the correction fits pass the occupancy
-    grid's draws as ``queried``; ``labels`` queries every draw."""
+    """The warm start and the correction fits pass the occupancy grid's draws as ``queried``;
+    ``skip_outside=False`` (the naive version) queries every draw."""
     scene, trainer = _trainer_with_a_grid(small_scene, tmp_path)
-    assert trainer.config.trainer.fit_outside == "skip"
     target = np.asarray(scene.image, dtype=np.float32)
     calls = []
     loss = trainer.model.volume_loss_dict
+
     def record(points, targets, **kw):  # the fits' calls (the skip's own inner call passes no ``queried``)
         if "queried" in kw:
             calls.append((points, kw["queried"]))
         return loss(points, targets, **kw)
 
     monkeypatch.setattr(trainer.model, "volume_loss_dict", record)
-    trainer.warm_start(target, steps=3, points_per_step=300, what="test")
+    warm_start(trainer, target, steps=3, points_per_step=300, what="test")
     mask = np.zeros(target.shape, dtype=bool)
     mask[4:-4, 4:-4, 4:-4] = True
-    trainer.fit_to_volume(target, mask, steps=2, points_per_step=200, lr=1e-4, curvature=0.1)
+    fit_in_region(trainer, target, mask, steps=2, points_per_step=200, lr=1e-4, curvature=0.1)
     assert len(calls) == 5
     for points, queried in calls:
         assert torch.equal(queried, trainer.model.occupied(points) > 0) and 0 < int(queried.sum()) < len(points)
-    trainer.config = dataclasses.replace(trainer.config, trainer=dataclasses.replace(trainer.config.trainer, fit_outside="labels"))
     calls.clear()
-    trainer.fit_to_volume(target, mask, steps=1, points_per_step=200, lr=1e-4)
+    fit_in_region(trainer, target, mask, steps=1, points_per_step=200, lr=1e-4, skip_outside=False)
     assert len(calls) == 1 and calls[0][1] is None
 
 
@@ -319,9 +323,9 @@ def test_anchor_with_occupancy_adds_the_label_term_away_from_the_edges(small_sce
     scene = load_naf(small_scene)
     target = np.asarray(scene.image, dtype=np.float32)
     trainer = Trainer(_tiny_config(), scene, tmp_path, epochs=1, device="cpu", bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
-    trainer.set_anchor(target, weight=0.5, points_per_step=300, occupancy_weight=0.3)
+    anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300, occupancy_weight=0.3)
     interior = label_interior(target, [0.2, 0.4, 0.7]).reshape(-1)
-    assert np.array_equal(trainer.anchor.label_mask.numpy(), interior) and 0 < interior.mean() < 1
+    assert np.array_equal(anchor.label_mask.numpy(), interior) and 0 < interior.mean() < 1
     draw = torch.Generator().manual_seed(0)
     draw.set_state(trainer.generator.get_state())
     idx = torch.randint(0, target.size, (300,), generator=draw)
@@ -332,9 +336,9 @@ def test_anchor_with_occupancy_adds_the_label_term_away_from_the_edges(small_sce
         mse = torch.mean((q["mu"] - values) ** 2)
         labels = trainer.model.occupancy_loss(q["distances"], values, mask=torch.as_tensor(interior)[idx])
         assert float(labels) > 0
-        assert float(trainer.anchor_loss()) == pytest.approx(float(0.5 * (mse + 0.3 * labels)), rel=1e-6)
-    trainer.set_anchor(target, weight=0.5, points_per_step=300)
-    assert trainer.anchor.label_mask is None  # no label term, no mask
+        assert float(anchor_loss(trainer, anchor)) == pytest.approx(float(0.5 * (mse + 0.3 * labels)), rel=1e-6)
+    anchor = build_anchor(trainer, target, weight=0.5, points_per_step=300)
+    assert anchor.label_mask is None  # no label term, no mask
 
 
 def test_occupancy_loss_mask_averages_over_the_masked_points_only(small_scene, tmp_path):
@@ -398,8 +402,8 @@ def test_anchor_occupancy_keeps_the_prior_volume_labels(small_scene, tmp_path):
     agree = {}
     for occupancy in (0.0, 1.0):
         trainer = Trainer(_tiny_config(epochs=20), scene, tmp_path / str(occupancy), epochs=20, device="cpu", bounds=bounds)
-        trainer.set_anchor(prior, weight=100.0, points_per_step=2048, occupancy_weight=occupancy)
-        trainer.train()
+        anchor = build_anchor(trainer, prior, weight=100.0, points_per_step=2048, occupancy_weight=occupancy)
+        trainer.train(loss_terms={"anchor": lambda: anchor_loss(trainer, anchor)})
         labels = labels_from_weights(query_grid(trainer.model, scene.geometry, keys=("weights",))["weights"])
         agree[occupancy] = float(np.mean(labels[trusted] == prior_labels[trusted]))
     assert agree[1.0] > agree[0.0] + 0.02, agree
@@ -412,64 +416,50 @@ def test_anchor_holds_the_field_near_the_prior_during_projection_training(small_
     for weight in (0.0, 100.0):
         trainer = Trainer(_tiny_config(epochs=20), scene, tmp_path / str(weight), epochs=20, device="cpu",
                           bounds=([0.4, 0.3, 0.4], [0.0, 0.4, 0.7]))
-        trainer.set_anchor(target, weight=weight, points_per_step=2048)
-        trainer.train()
+        anchor = build_anchor(trainer, target, weight=weight, points_per_step=2048)
+        trainer.train(loss_terms={} if anchor is None else {"anchor": lambda: anchor_loss(trainer, anchor)})
         scores[weight] = psnr3d(sample_volume(trainer.model, scene.geometry), target)
         assert ("anchor" in trainer.history) == (weight > 0)
     assert scores[100.0] > scores[0.0] + 1.0, scores
 
 
-def test_presets_fill_and_check_the_options():
-    cpu = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu"))
-    paper = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="paper"))
-    assert (cpu.trainer.warm_start, cpu.bounds_volume) == ("asd-pocs", "asd-pocs") and cpu.trainer.warm_start_steps > 0
-    assert (paper.trainer.warm_start, paper.bounds_volume) == ("none", "prior")
-    assert len(presets.procedure_notes(cpu)) == 7 and presets.procedure_notes(paper) == []
-    assert (cpu.model.quadrature, paper.model.quadrature) == ("bins", "bins")
-    assert (cpu.trainer.warm_start_anchor, paper.trainer.warm_start_anchor) == (0.01, 0.0)
-    cpu_cfg = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
-    cold = dataclasses.replace(cpu_cfg, trainer=dataclasses.replace(cpu_cfg.trainer, warm_start="none"))
-    assert (cpu.trainer.anchor_occupancy, paper.trainer.anchor_occupancy) == (0.03, 0.0)
-    assert (cpu.trainer.anchor_edge_contrast, paper.trainer.anchor_edge_contrast) == (0.0, 0.0)
-    cpu_default = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
-    edged = presets.resolve(dataclasses.replace(cpu_default, trainer=dataclasses.replace(cpu_default.trainer, anchor_edge_contrast=0.15)))
-    assert "--trainer.anchor-edge-contrast 0.15" in " ".join(presets.procedure_notes(edged))
-    assert "anchor-edge-contrast" not in " ".join(presets.procedure_notes(cpu))
-    assert "its labels away from its edges, weight 0.03" in " ".join(presets.procedure_notes(cpu))
-    resolved_cold = presets.resolve(cold)
-    assert (resolved_cold.trainer.warm_start_anchor, resolved_cold.trainer.anchor_occupancy) == (0.0, 0.0)  # no anchor, no error
-    assert presets.resolve(resolved_cold) == resolved_cold  # a saved run's config resolves to itself
-    with pytest.raises(ConfigError, match="no anchor"):
-        presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, anchor_occupancy=0.1)))
-    assert presets.resolve(cold).trainer.anchor_edge_contrast == 0.0
-    with pytest.raises(ConfigError, match="no anchor"):
-        presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, anchor_edge_contrast=0.1)))
-    with pytest.raises(ConfigError, match="anchor_edge_contrast"):
-        _tiny_config(anchor_edge_contrast=-0.1)
-    with pytest.raises(ConfigError, match="warm_start is none"):
-        presets.resolve(dataclasses.replace(cold, trainer=dataclasses.replace(cold.trainer, warm_start_anchor=0.1)))
-    with pytest.raises(ConfigError, match="warm_start_anchor"):
-        _tiny_config(warm_start="fdk", warm_start_anchor=-1.0)
-    with pytest.raises(ConfigError, match="anchor_occupancy"):
-        _tiny_config(anchor_occupancy=float("nan"))
-    with pytest.raises(ConfigError, match="warm_start"):
-        _tiny_config(warm_start="gt")
-    with pytest.raises(ConfigError, match="bounds_volume"):
-        presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="tiny", bounds_volume="truth"))
+def test_the_stages_settings_check_themselves():
+    base = registry.load("methods", "k-neas").config
+    cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
+    st = cpu.stages
+    assert (st.classical_start.algorithm, st.warm_start.steps, st.anchor.weight, st.anchor.occupancy, st.anchor.edge_contrast) == \
+        ("asd-pocs", 300, 0.01, 0.03, 0.0)
+    assert presets.resolve(cpu) == cpu  # a saved run's config resolves to itself
+    lines = " ".join(presets.describe(cpu))
+    assert "anchor: the classical start kept as a prior during training, weight 0.01, its labels away from its edges at weight 0.03" in lines
+    for part, setting, value, words in (("anchor", "edge_contrast", -0.1, "--stages.anchor.edge-contrast must be a number >= 0"),
+                                        ("anchor", "occupancy", float("nan"), "--stages.anchor.occupancy"),
+                                        ("warm_start", "steps", 1.5, "stages.warm_start.steps must be an integer"),
+                                        ("warm_start", "points", 0, "--stages.warm-start.points must be a whole number >= 1")):
+        stages = dataclasses.replace(base.stages, **{part: dataclasses.replace(getattr(base.stages, part), **{setting: value})})
+        with pytest.raises(ConfigError, match=words):
+            presets.resolve(dataclasses.replace(base, preset="cpu", stages=stages))
+    with pytest.raises(ConfigError, match="asd-pocs"):
+        stages = dataclasses.replace(base.stages, classical_start=dataclasses.replace(base.stages.classical_start, algorithm="gt"))
+        presets.resolve(dataclasses.replace(base, preset="cpu", stages=stages))
+
+
+START_ONLY = ["--procedure", "refine-classical", "--skip-stages", "correction", "smoothing", "materials-refit", "time-budget"]
 
 
 def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     outdir = tmp_path / "out"
-    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(outdir),
-                          "--bounds-volume", "fdk", "--trainer.warm-start", "fdk", "--trainer.warm-start-steps", "20",
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(outdir), *START_ONLY,
+                          "--stages.classical-start.algorithm", "fdk", "--stages.warm-start.steps", "20",
                           "--bounds-k-rule", "bic-valleys", "--bounds-max-materials", "5", "--bounds-min-std", "0.03", "--bounds-gmm-restarts", "2",
-                          "--trainer.warm-start-anchor", "0.01", "--trainer.anchor-occupancy", "0.03"], capsys)
+                          "--stages.anchor.weight", "0.01", "--stages.anchor.occupancy", "0.03"], capsys)
     assert code == 0, err
-    assert "GMM is fitted on the FDK reconstruction" in out and "warm start: the model is first fitted" in out
-    assert "model: anchor: the FDK volume kept as a prior, weight 0.01, 4,096 voxel centres per step, and its labels away from its edges, weight 0.03" in out
-    assert "materials: K = 1..5 by the lowest BIC whose boundaries are all density valleys" in out and "the best of 2 GMM starts" in out
-    assert "lowest BIC with every boundary a density valley" in out
-    assert "prior: training" not in out and "on the FDK" in out and "model: warm start done" in out
+    assert "classical start: an FDK reconstruction of the training views" in out and "warm start: fitting the model to the FDK" in out
+    assert "model: anchor: the FDK volume kept as a prior, weight 0.01, 4,096 voxel centres per step (the field queried only" in out
+    assert "and its labels away from its edges, weight 0.03 inside it" in out
+    assert ("bounds: K by the lowest BIC with every boundary a density valley, K = 1..5, the best of 2 GMM starts, components at "
+            "least 0.03 x the 99.5th percentile wide, on the voxel values of the FDK start") in out
+    assert "prior: training" not in out and "model: warm start done" in out
     run_dir = run_dir_of(out)
     assert not (outdir / "smallfoot" / "neas-1m-prior").exists()  # no prior model was trained
     bounds = json.loads((run_dir / "bounds.json").read_text())
@@ -480,18 +470,20 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     fdk = np.load(run_dir / "fdk_volume.npy")
     assert fdk.shape == (24, 24, 24) and np.isfinite(fdk).all()
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    assert metrics["warm_start"] == "fdk" and metrics["classical_volume"] == "fdk" and metrics["warm_start_time_s"] > 0 and metrics["classical_time_s"] > 0
+    stages = metrics["stages"]
+    assert list(stages) == ["classical-start", "warm-start", "anchor"] and stages["classical-start"]["algorithm"] == "fdk"
+    assert stages["warm-start"]["seconds"] > 0 and stages["classical-start"]["seconds"] > 0
     assert metrics["bounds_time_s"] == pytest.approx(bounds["fit_time_s"]) and metrics["bounds_time_s"] > 0
     assert metrics["loss_scale"] == 1.0  # a NAF-normalised scan: its losses as they were (engine.loss_scale)
-    parts = (metrics["train_time_s"] + metrics["warm_start_time_s"] + metrics["classical_time_s"] + metrics["bounds_time_s"]
+    parts = (metrics["train_time_s"] + stages["warm-start"]["seconds"] + stages["classical-start"]["seconds"] + metrics["bounds_time_s"]
              + metrics["eval_time_s"] + metrics["prior_time_s"])
     assert metrics["wall_time_s"] == pytest.approx(parts)
     # the same data and schedule from scratch: the warm start must not be worse on the volume
-    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"),
-                          "--bounds-volume", "fdk", "--trainer.warm-start", "none"], capsys)
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"), *START_ONLY,
+                          "warm-start", "anchor", "--stages.classical-start.algorithm", "fdk"], capsys)
     assert code == 0, err
     cold = json.loads((run_dir_of(out) / "metrics.json").read_text())
-    assert cold["warm_start_time_s"] == 0 and metrics["psnr3d"] > cold["psnr3d"]
+    assert "warm-start" not in cold["stages"] and metrics["psnr3d"] > cold["psnr3d"]
 
 
 def test_peaks_bounds_set_where_material_one_labels_start_in_the_saved_run(small_scene, tmp_path, capsys, monkeypatch):
@@ -502,17 +494,17 @@ def test_peaks_bounds_set_where_material_one_labels_start_in_the_saved_run(small
 
     real = neural_pipeline.estimate_bounds
 
-    def two_plateaus(config, scene, run_dir, device, volume=None):
-        v = np.asarray(volume, dtype=np.float64)
+    def two_plateaus(config, scene, run_dir, device, start=None, loss_scale=1.0):
+        v = np.asarray(start[0], dtype=np.float64)
         inside = v > 0.5 * np.percentile(v, 99)
         rng = np.random.default_rng(0)
         plateaus = np.where(v > np.percentile(v[inside], 70), 0.8, 0.3) + rng.normal(0, 1e-3, v.shape)
-        return real(config, scene, run_dir, device, volume=np.where(inside, plateaus, 0.0))
+        return real(config, scene, run_dir, device, start=(np.where(inside, plateaus, 0.0), start[1]), loss_scale=loss_scale)
 
     monkeypatch.setattr(neural_pipeline, "estimate_bounds", two_plateaus)
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),
-                          "--bounds-volume", "fdk", "--bounds-k-rule", "peaks", "--trainer.warm-start", "fdk",
-                          "--trainer.warm-start-steps", "5", "--trainer.epochs", "1"], capsys)
+                          *START_ONLY, "--stages.classical-start.algorithm", "fdk", "--bounds-k-rule", "peaks",
+                          "--stages.warm-start.steps", "5", "--trainer.epochs", "1"], capsys)
     assert code == 0, err
     run_dir = run_dir_of(out)
     bounds = json.loads((run_dir / "bounds.json").read_text())
@@ -547,16 +539,15 @@ def test_occupancy_term_gives_a_gradient_where_omega_is_saturated():
     assert (g_occ > 1e-4).all()  # every material's distance is pushed down (inside): the target reaches all three
 
 
-def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path, capsys):
-    """``--bounds-volume sart --trainer.warm-start asd-pocs``: both volumes are reconstructed once
-    (with the run's reconstruction options), the GMM is fitted on SART's, the model starts from
-    ASD-POCS's, and metrics.json says so."""
-    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),
-                          "--bounds-volume", "sart", "--trainer.warm-start", "asd-pocs", "--trainer.warm-start-steps", "20",
+def test_iterative_classical_start_end_to_end(small_scene, tmp_path, capsys):
+    """``--stages.classical-start.algorithm sart``: reconstructed once (with the run's reconstruction
+    options), the GMM fitted on it, the model started from it and anchored to it, metrics.json says so."""
+    code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"), *START_ONLY,
+                          "--stages.classical-start.algorithm", "sart", "--stages.warm-start.steps", "20",
                           "--reconstruction.iterations", "2", "--model.quadrature", "voxel-planes",
-                          "--trainer.warm-start-anchor", "0.01", "--trainer.anchor-edge-contrast", "0.2"], capsys)
+                          "--stages.anchor.weight", "0.01", "--stages.anchor.edge-contrast", "0.2"], capsys)
     assert code == 0, err
-    assert "GMM is fitted on the SART reconstruction" in out and "fitting the model to the ASD-POCS reconstruction" in out
+    assert "on the voxel values of the SART start" in out and "fitting the model to the SART reconstruction" in out
     assert "its values held less at its sharp edges (half at a step of 0.2 of its range per voxel)" in out
     assert "quadrature: one sample where each ray crosses each voxel-centre plane" in out
     run_dir = run_dir_of(out)
@@ -564,34 +555,14 @@ def test_iterative_bounds_volume_and_warm_start_end_to_end(small_scene, tmp_path
     assert loaded.model.quadrature == "voxel-planes" and loaded.model.voxel_count.tolist() == [24, 24, 24]
     bounds = json.loads((run_dir / "bounds.json").read_text())
     assert bounds["volume"] == "sart" and "SART" in bounds["source"]
-    for name in ("sart", "asd-pocs"):
-        info = json.loads((run_dir / f"{name}_volume.json").read_text())
-        assert info["settings"]["algorithm"] == name and info["settings"]["iterations"] == 2
-        assert np.load(run_dir / f"{name}_volume.npy").shape == (24, 24, 24)
+    info = json.loads((run_dir / "sart_volume.json").read_text())
+    assert info["settings"]["algorithm"] == "sart" and info["settings"]["iterations"] == 2
+    assert np.load(run_dir / "sart_volume.npy").shape == (24, 24, 24)
     m = json.loads((run_dir / "metrics.json").read_text())
-    assert m["warm_start"] == "asd-pocs" and sorted(m["classical_volume"]) == ["asd-pocs", "sart"]
+    assert m["stages"]["classical-start"]["algorithm"] == "sart" and "warm-start" in m["stages"]
     code, _, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o2"),
-                        "--trainer.warm-start", "sirt"], capsys)
+                        *START_ONLY, "--stages.classical-start.algorithm", "sirt"], capsys)
     assert code == 2 and "asd-pocs" in err and len(err.strip().splitlines()) == 1
-
-
-def test_runs_skip_the_fits_draws_outside_the_grid_and_older_runs_keep_their_rule():
-    """The default (``skip``) for the anchor since the 58th stop and for the warm start and the
-    correction fits since the 59th; a config.json written before either (without the key) is
-    read with the rule it was trained with (``labels``)."""
-    from kneas_method.config import to_dict
-    from kneas_method.engine.loading import config_from_dict
-
-    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="cpu"))
-    assert cfg.trainer.anchor_outside == "skip" and cfg.trainer.warm_start_anchor > 0 and cfg.model.occupancy_grid
-    saved = to_dict(cfg)
-    assert config_from_dict(saved, "config.json").trainer.anchor_outside == "skip"
-    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "anchor_outside"}}
-    assert config_from_dict(older, "config.json").trainer.anchor_outside == "labels"
-    assert cfg.trainer.fit_outside == "skip" and config_from_dict(saved, "config.json").trainer.fit_outside == "skip"
-    older = {**saved, "trainer": {k: v for k, v in saved["trainer"].items() if k != "fit_outside"}}
-    read = config_from_dict(older, "config.json").trainer
-    assert read.fit_outside == "labels" and read.anchor_outside == "skip"
 
 
 @pytest.mark.parametrize("how", ["volume", "rendered"])

@@ -51,7 +51,7 @@ DEFAULT_VIEWS = 50
 # seconds per training step, by (preset, device kind). None = not measured.
 SECONDS_PER_STEP: dict[tuple[str, str], Optional[float]] = {
     ("tiny", "cpu"): 0.04,
-    ("cpu", "cpu"): 0.10,  # 0.16 at the 256 + 64 rays of the 51st stop's preset; a step of 128 + 32 costs ~0.6 of one
+    ("cpu", "cpu"): 0.10,  # 0.16 at 256 + 64 rays (the cpu preset before 2026-11-26); a step of 128 + 32 costs ~0.6 of one
     ("paper", "cpu"): 13.0,
     ("tiny", "gpu"): None,
     ("cpu", "gpu"): None,
@@ -85,13 +85,35 @@ def _extra_int(extra: Sequence[str], *names: str) -> Optional[int]:
     return None
 
 
+def _procedure_stages(cell: Cell, preset: str) -> list[str]:
+    """The stages a cell's run goes through: its ``--procedure`` (or the preset's), less ``--skip-stages``."""
+    extra = list(cell.extra)
+    name = presets.TABLE[preset]["procedure"]
+    skip: list[str] = []
+    for i, a in enumerate(extra):
+        if a == "--procedure" and i + 1 < len(extra):
+            name = extra[i + 1]
+        elif a.startswith("--procedure="):
+            name = a.split("=", 1)[1]
+        elif a == "--skip-stages":
+            for b in extra[i + 1:]:
+                if b.startswith("--"):
+                    break
+                skip.append(b)
+    try:
+        stages = presets.procedure_of(name).stages
+    except Exception:  # an unknown procedure: the run itself will say so
+        return []
+    return [s for s in stages if s not in skip]
+
+
 def training_steps(cell: Cell, preset: str) -> int:
     table = presets.TABLE[preset]["trainer"]
     epochs = _extra_int(cell.extra, "--trainer.epochs") or table["epochs"]
     prior = _extra_int(cell.extra, "--trainer.prior-epochs", "--trainer.prior_epochs")
     prior = table["prior_epochs"] if prior is None else prior
     views = cell.views or DEFAULT_VIEWS
-    uses_prior = cell.method not in PRIOR_METHODS_NO and presets.TABLE[preset]["run"]["bounds_volume"] == "prior"
+    uses_prior = cell.method not in PRIOR_METHODS_NO and "classical-start" not in _procedure_stages(cell, preset)
     return views * (epochs + (prior if uses_prior else 0))
 
 

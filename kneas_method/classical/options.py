@@ -1,11 +1,13 @@
 """Settings of a classical reconstruction (SPEC §7), shared by the classical methods
 (``kneas-train fdk|sart|os-sart|cgls|asd-pocs ...``) and by the neural methods that start
-from a classical volume (``--bounds-volume``, ``--trainer.warm-start``)."""
+from a classical volume (the classical start, ``--stages.classical-start.algorithm``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, Optional
+
+from ..config import at_least
 
 Algorithm = Literal["fdk", "sart", "os-sart", "cgls", "asd-pocs"]
 ALGORITHMS: tuple[str, ...] = Algorithm.__args__
@@ -32,10 +34,10 @@ class ReconstructionOptions:
     """
 
     filter: FdkFilter = "ram-lak"
-    iterations: Optional[int] = None
-    relaxation: Optional[float] = None
-    subsets: Optional[int] = None
+    iterations: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
+    relaxation: Optional[float] = field(default=None, metadata=at_least(0, strict=True))
+    subsets: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
     positivity: bool = True
     backprojector: Backprojector = "auto"
-    tv_steps: int = 20
-    tv_alpha: float = 0.01
+    tv_steps: int = field(default=20, metadata=at_least(0, whole=True))
+    tv_alpha: float = field(default=0.01, metadata=at_least(0))

@@ -116,9 +116,7 @@ def dry_run(config) -> int:
     print(f"samples: {m.num_samples} train / {m.num_eval_samples} eval  rays: {config.datamanager.num_object_rays} object + {config.datamanager.num_air_rays} air  eikonal: {m.eikonal_mode or 'auto'} x{m.eikonal_fraction}")
     t = config.trainer
     print(f"trainer: epochs={t.epochs} prior_epochs={t.prior_epochs} lr={t.lr} decay x{t.lr_decay_factor} at {t.lr_decay_at:.0%}")
-    warm = (f"fit to the {t.warm_start.upper()} volume for {t.warm_start_steps} steps" if t.warm_start != "none" and t.warm_start_steps
-            else "none (train from the initialisation)")
-    print(f"warm start: {warm}" + (f"  bounds volume: {config.bounds_volume}" if presets.automatic_bounds(config) else ""))
+    print(f"stages: {', '.join(presets.stage_names(config)) or 'none beside the bounds and training'}")
     print(f"parameters: {model.num_parameters():,}")
     if model.has_surfaces and presets.k_from_data(config):
         extra = dataclasses.replace(m, num_materials=model.num_materials + 1).setup(scale=1.0).num_parameters() - model.num_parameters()
@@ -133,8 +131,8 @@ def run(config) -> int:
     if not config.dry_run:
         check_scene_spec(config.scene)  # a wrong --scene is the whole answer, before the preset's notes
     print(reason)
-    for note in presets.procedure_notes(config):
-        print(note)
+    for line in presets.describe(config):
+        print(line)
     if config.dry_run:
         return dry_run(config)
     return train(config)

@@ -21,14 +21,14 @@ resumed run draws exactly the batches a straight run would.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Optional
 
 import numpy as np
 import torch
 
-from ..config import InstantiateConfig
-from ..errors import CheckpointError
+from ..config import InstantiateConfig, at_least, check_ranges
+from ..errors import CheckpointError, ConfigError
 from ..data.scene import Scene
 
 
@@ -83,8 +83,13 @@ class CTDataManagerConfig(InstantiateConfig):
 
     _target = "kneas_method.datamanagers.ct:CTDataManager"
     pixel_sampler: str = "object-air-pixels"
-    num_object_rays: Optional[int] = None
-    num_air_rays: Optional[int] = None
+    num_object_rays: Optional[int] = field(default=None, metadata=at_least(0, whole=True))
+    num_air_rays: Optional[int] = field(default=None, metadata=at_least(0, whole=True))
+
+    def check(self, prefix: str) -> None:
+        check_ranges(self, prefix)
+        if self.num_object_rays is not None and self.num_air_rays is not None and self.num_object_rays + self.num_air_rays < 1:
+            raise ConfigError(f"--{prefix}num-object-rays and --{prefix}num-air-rays are both 0; give at least one ray per step")
 
 
 class CTDataManager:

@@ -1,4 +1,4 @@
 """kneas engine: the orchestrator (``pipeline.train``), one pipeline per kind of run
-(``neural_pipeline``, ``classical_pipeline``), their stages (``bounds_stage``,
-``classical_volume``, ``train_stage`` with the ``trainer``, ``evaluate``, ``report``),
-loading saved runs (``loading``), checkpoints and run folders."""
+(``neural_pipeline``, ``classical_pipeline``), the core of a neural run (``bounds_stage``, the
+``trainer``), evaluation and reports, loading saved runs (``loading``), checkpoints and run folders.
+The stages a procedure adds around the core live in ``kneas_method.stages``."""

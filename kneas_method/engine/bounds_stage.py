@@ -1,11 +1,11 @@
-"""The bounds stage of a neural run with surfaces (SPEC §4): prior or classical volume -> GMM -> bounds.
+"""The bounds of a neural run with surfaces (SPEC §4): prior or classical start -> GMM -> bounds.
 
 * :func:`estimate_bounds` ``(config, scene, run_dir, device) -> BoundsResult``: from
   ``--bounds FILE``, ``model.alphas/betas``, the NeAS wide defaults, or automatically:
   the GMM (``bounds.GMMBounds``) fitted to the voxel values of the bounds volume, which
-  is a trained NeAS-1M prior (the paper; :func:`run_prior`) or a classical reconstruction
-  of the training views (``--bounds-volume fdk``). K by BIC unless given. Writes the
-  GMM figure; the caller keeps the result as ``bounds.json``.
+  is a trained NeAS-1M prior (the paper; :func:`run_prior`) or, where the procedure has a
+  classical start (``stages.classical_start``), that reconstruction. K by the run's K rule unless
+  given. Writes the GMM figure; the caller keeps the result as ``bounds.json``.
 * :func:`run_prior`: trains (or reuses) the NeAS-1M prior in a run folder of its own,
   ``DIR/<scene>/neas-1m-prior/<key>/``, keyed on the training data, views, preset, seed
   and the prior's settings; its attenuation at the voxel centres is kept as ``volume.npy``.
@@ -28,7 +28,7 @@ from .. import registry
 from ..config import to_dict
 from ..console import say
 from ..errors import ConfigError
-from ..presets import TABLE, attenuation_options
+from ..model import build_component
 from .evaluate import sample_volume
 from .run_dir import safe_name, write_json
 
@@ -37,7 +37,7 @@ PRIOR_FOLDER = "neas-1m-prior"
 # The peaks rule's fallback (a histogram with fewer than two peaks: a noisy or textured volume): the
 # mixtures are fitted to the volume after a bilateral filter of this width (voxels) and range (a
 # fraction of the volume's 99.5th percentile), which flattens the noise inside each material into a
-# plateau and keeps the edges of more contrast than the range (66th stop; docs/experiments.md).
+# plateau and keeps the edges of more contrast than the range.
 FALLBACK_SIGMA = 3.0
 FALLBACK_RANGE = 0.1
 
@@ -48,7 +48,7 @@ def histogram_smoothing(volume) -> np.ndarray:
     99.5th percentile, for the bounds' histogram only (the warm start and the anchor keep the volume)."""
     import torch
 
-    from ..denoise import bilateral
+    from ..stages.denoise import bilateral
 
     v = volume.detach().float().cpu() if isinstance(volume, torch.Tensor) else torch.from_numpy(np.asarray(volume, dtype=np.float32))
     top = float(np.percentile(v.numpy(), 99.5))
@@ -117,20 +117,24 @@ def scene_fingerprint(scene) -> str:
 
 
 def prior_config(config):
-    """The resolved NeAS-1M prior config for a run: the method's NeAS-1M settings with
-    the run's preset-resolved encoding, attenuation width, samples, rays and schedule (``prior_epochs``)."""
+    """The resolved NeAS-1M prior config for a run: the method's NeAS-1M settings with the run's
+    resolved encoding, attenuation width (the options its network takes), samples, rays and schedule
+    (``prior_epochs``)."""
     base = registry.load("methods", PRIOR_METHOD).config.model
+    own = {f.name for f in dataclasses.fields(build_component("attenuations", base.attenuation))}
+    width = {k: v for k, v in (config.model.attenuation_options or {}).items() if k in own}
     model = dataclasses.replace(
         config.model,
-        field=base.field, field_options=dict(base.field_options), attenuation=base.attenuation, attenuation_options=dict(base.attenuation_options),
+        field=base.field, field_options=dict(base.field_options), attenuation=base.attenuation,
+        attenuation_options={**base.attenuation_options, **width},
         selector=base.selector, selector_options=dict(base.selector_options), num_materials=1,
         floater=False, alphas=None, betas=None,
     )
-    preset = TABLE.get(config.preset, {}).get("attenuation", {})  # the preset's width, as the run's own network has
-    model = dataclasses.replace(model, attenuation_options=attenuation_options(model, preset))
     trainer = dataclasses.replace(config.trainer, epochs=config.trainer.prior_epochs)
     return dataclasses.replace(config, method=PRIOR_METHOD, num_materials=1, bounds=None, bounds_source="wide", resume=None,
-                               model=model, trainer=trainer)
+                               model=model, trainer=trainer, stages=dataclasses.replace(config.stages, **{
+                                   f.name: None for f in dataclasses.fields(config.stages) if f.name != "plugins"}),
+                               skip_stages=(), add_stages=())
 
 
 def prior_key(prior_cfg, scene) -> str:
@@ -146,10 +150,11 @@ def prior_key(prior_cfg, scene) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def run_prior(config, scene, device) -> PriorResult:
-    """Train (or reuse) the NeAS-1M prior of a run."""
+def run_prior(config, scene, device, loss_scale: float = 1.0) -> PriorResult:
+    """Train (or reuse) the NeAS-1M prior of a run (its losses in the run's ``loss_scale``)."""
+    from ..console import console
     from .figures import plot_loss_curves
-    from .train_stage import train_stage
+    from .trainer import Trainer
 
     pcfg = prior_config(config)
     key = prior_key(pcfg, scene)
@@ -173,7 +178,17 @@ def run_prior(config, scene, device) -> PriorResult:
         (folder / sub).mkdir(parents=True, exist_ok=True)
     write_json(folder / "config.json", to_dict(pcfg))
     say(f"prior: training the NeAS-1M prior for the GMM bounds in {folder}")
-    trainer = train_stage(pcfg, scene, folder, epochs=pcfg.trainer.epochs, device=device, bounds=None, label="prior")
+    trainer = Trainer(pcfg, scene, folder, epochs=pcfg.trainer.epochs, device=device, label="prior", console=console,
+                      loss_scale=loss_scale)
+    path = trainer.resume()
+    if path is None and trainer.model.occupancy is not None:
+        from .visual_hull import set_visual_hull
+
+        set_visual_hull(trainer.model, scene, "prior", say=say)
+    if path is not None:
+        say(f"prior: resuming from {path} ({'complete' if trainer.complete else f'step {trainer.step}/{trainer.total_steps}'})")
+    say(f"prior: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
+    trainer.train()
     volume = sample_volume(trainer.model, scene.geometry, device=device)
     np.save(vol_path, volume.astype(np.float32))
     plot_loss_curves(trainer.loss_history(), folder / "figures" / "loss_curves.png", title="NeAS-1M prior")
@@ -199,13 +214,14 @@ def _line_integral_check(gmm, scene, what: str) -> float:
             f"the upper bound b_K = {float(gmm.boundaries_[-1]):.4g} 1/m cannot explain the largest measured line integral "
             f"(it needs at least {mu_needed:.4g} 1/m along the longest chord): the {what} volume looks too weak; "
             + ("train the prior longer (--trainer.prior-epochs) or give --bounds" if what == "NeAS-1M prior"
-               else "give --bounds or use --bounds-volume prior"))
+               else "give --bounds or use --skip-stages classical-start (the bounds then come from a NeAS-1M prior)"))
     return mu_needed
 
 
-def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.ndarray] = None) -> BoundsResult:
-    """Bounds for a surface method (module docstring). ``volume``: the classical bounds volume
-    when ``config.bounds_volume`` is a classical method (the caller computes it once)."""
+def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple] = None, loss_scale: float = 1.0) -> BoundsResult:
+    """Bounds for a surface method (module docstring). ``start``: the classical start's ``(volume,
+    algorithm)``, whose volume the automatic bounds are estimated on; None: a NeAS-1M prior's.
+    ``loss_scale``: the run's loss unit (the wide defaults are NAF-scale: in a scanner's scan, in its unit)."""
     from ..bounds import load_bounds
 
     K = config.num_materials
@@ -224,21 +240,17 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
     if config.bounds_source == "wide":
         from ..fields.attenuation import default_bounds
 
-        from .loss_scale import loss_scale
-
-        unit = loss_scale(scene)  # the defaults are NAF-scale: in a scanner's scan, in its unit
+        unit = float(loss_scale)
         a, b = ([unit * v for v in values] for values in default_bounds(int(m.num_materials)))
         say("bounds: NeAS wide defaults" + (f", times the scan's unit {unit:.4g} /m" if unit != 1.0 else ""))
         return BoundsResult(a, b, int(m.num_materials), "wide (NeAS defaults)")
     # automatic: GMM (SPEC §4) on the prior model's volume (the paper) or on a classical reconstruction
     prior: Optional[PriorResult] = None
-    if config.bounds_volume == "prior":
-        prior = run_prior(config, scene, device)
+    if start is None:
+        prior = run_prior(config, scene, device, loss_scale=loss_scale)
         volume, what = prior.volume, "NeAS-1M prior"
     else:
-        if volume is None:
-            raise ConfigError(f"bounds volume {config.bounds_volume!r} was not computed; this is a bug in the pipeline")
-        what = config.bounds_volume.upper()
+        volume, what = start[0], start[1].upper()
     t0 = time.perf_counter()
     if config.bounds_k_rule == "peaks" and K is None:
         say(f"bounds: one material per peak of the {what} voxel values' histogram (Gaussian mixtures, K = 1..{config.bounds_max_materials}, "
@@ -274,7 +286,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, volume: Optional[np.nd
         say(f"[yellow]bounds warning:[/] {w}")
     say(f"bounds: {how} on {gmm.n_kept_:,} {what} voxel values in {time.perf_counter() - t0:.0f} s, {chosen}; "
         f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
-    details = {"volume": config.bounds_volume, "k_chosen_by": "given" if K is not None else gmm.k_rule_used_,
+    details = {"volume": "prior" if start is None else start[1], "k_chosen_by": "given" if K is not None else gmm.k_rule_used_,
                "smoothed": {"filter": "bilateral", "sigma_voxels": FALLBACK_SIGMA, "range_fraction": FALLBACK_RANGE} if smoothed else None,
                "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,
                "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}

@@ -43,8 +43,6 @@ def missing_hint(run_dir: Path) -> str:
 
 # settings that ``--resume`` may change: they do not change what is trained
 RESUME_SAFE = ("device", "resume", "dry_run", "trainer.eval_chunk")
-# keys of older config.json files, dropped (or mapped) on load
-_LEGACY_KEYS = ("reconstructor",)
 
 
 def config_from_dict(data: Any, where: str):
@@ -55,54 +53,35 @@ def config_from_dict(data: Any, where: str):
 
     if not isinstance(data, dict) or not isinstance(data.get("method"), str):
         raise KneasError(f"{where} has no 'method' entry; it is not a kneas run config (config.json)")
-    data = dict(data)
-    for key in _LEGACY_KEYS:
-        data.pop(key, None)
-    if "fdk_filter" in data:  # older neural configs kept the FDK window at the top
-        data.setdefault("reconstruction", {})["filter"] = data.pop("fdk_filter")
-    trainer = data.get("trainer")
-    if isinstance(trainer, dict) and "correction_solve" in trainer:  # the 55th stop's band / edges, now a ring weight 1 / 0
-        trainer = dict(trainer)
-        solve = trainer.pop("correction_solve")
-        trainer.setdefault("correction_ring", 0.0 if solve == "edges" else 1.0)
-        data["trainer"] = trainer
-    trainer = data.get("trainer")
-    if isinstance(trainer, dict) and "warm_start_anchor" in trainer and "anchor_outside" not in trainer:
-        # written before the 58th stop, whose anchor queried every draw: keep what the run was trained with
-        data["trainer"] = dict(trainer, anchor_outside="labels")
-    trainer = data.get("trainer")
-    if isinstance(trainer, dict) and "warm_start_steps" in trainer and "fit_outside" not in trainer:
-        # written before the 59th stop, whose warm start and correction fits queried every draw
-        data["trainer"] = dict(trainer, fit_outside="labels")
-    trainer = data.get("trainer")
-    if isinstance(trainer, dict) and "correction_passes" in trainer and "denoise" not in trainer:
-        # written before the 64th stop, whose correction stage ended with the passes: no smoothing
-        data["trainer"] = dict(trainer, denoise="none")
-    trainer = data.get("trainer")
-    if isinstance(trainer, dict) and "denoise" in trainer and "denoise_steps" not in trainer:
-        # written in the 64th stop: Gaussians alone, fitted as a pass fits
-        data["trainer"] = dict(trainer, denoise="sure-gaussian" if trainer["denoise"] == "sure" else trainer["denoise"],
-                               denoise_steps=trainer.get("correction_steps", 75), denoise_lr=trainer.get("correction_lr", 1e-4))
-    trainer = data.get("trainer")
-    if isinstance(trainer, dict) and "denoise_steps" in trainer and "materials_refit_steps" not in trainer:
-        # written before the 67th stop, whose runs kept the start's materials
-        data["trainer"] = dict(trainer, materials_refit_steps=0)
-    trainer, model = data.get("trainer"), data.get("model")
-    if isinstance(trainer, dict) and "warm_start_steps" in trainer and isinstance(model, dict) \
-            and isinstance(model.get("attenuation_options"), dict) and "hidden_dim" not in model["attenuation_options"] \
-            and _attenuation_has_width(data["method"], model):
-        # written before the 60th stop, whose presets left the attenuation networks at their 64-wide
-        # default: keep that width, so the run loads and resumes as it was trained
-        data["model"] = dict(model, attenuation_options=dict(model["attenuation_options"], hidden_dim=64))
-    if isinstance(data.get("model"), dict) and data["model"].get("reference") is False:
-        data["model"] = {k: v for k, v in data["model"].items() if k != "reference"}
+    from .legacy_config import upgrade
+
+    data = upgrade(data, _attenuation_has_width)
     method = data["method"]
     specs = registry.methods()
     if method not in specs:
         raise KneasError(f"{where} is a run of method {method!r}, which is not installed here; installed: {', '.join(specs)}")
     base = dataclasses.replace(specs[method].config, method=method)
     data = _drop_other_kind(base, data)
-    return update_from_dict(base, data, where=where)
+    return stages_as_skipped(update_from_dict(base, data, where=where))
+
+
+def stages_as_skipped(config):
+    """A config whose procedure's stages are null (a resolved config.json's stages the run did not run)
+    with those stages' default settings and their names in ``skip_stages`` instead: the same run, and
+    the command line's ``--stages.<stage>.*`` flags exist for every stage."""
+    from ..methods import TrainConfig
+    from ..presets import procedures
+    from ..stages import BUILT_IN
+
+    if not isinstance(config, TrainConfig) or config.procedure not in procedures():
+        return config
+    listed = procedures()[config.procedure].stages
+    defaults = type(config.stages)()
+    off = [name for name in listed if name in BUILT_IN and getattr(config.stages, BUILT_IN[name]) is None]
+    if not off:
+        return config
+    stages = dataclasses.replace(config.stages, **{BUILT_IN[n]: getattr(defaults, BUILT_IN[n]) for n in off})
+    return dataclasses.replace(config, stages=stages, skip_stages=tuple(dict.fromkeys(tuple(config.skip_stages) + tuple(off))))
 
 
 def _attenuation_has_width(method: str, model: dict) -> bool:
@@ -480,9 +459,11 @@ def unfinished_notes(state: dict, config, run_dir: Path) -> list[str]:
         return [f"training stopped at step {step} of {total}: these figures are an unfinished model's; finish it with "
                 f"kneas-train --resume {run_dir}"]
     from ..model import field_has_surfaces
+    from .trainer import stage_records
 
-    passes = config.trainer.correction_passes
-    if passes and extra.get("correction") is None and field_has_surfaces(config.model):
-        return [f"the {passes} correction passes after training were not run (the run stopped before them); "
+    correction = getattr(getattr(config, "stages", None), "correction", None)
+    skipped = "correction" in getattr(config, "skip_stages", ())
+    if correction is not None and not skipped and "correction" not in stage_records(extra) and field_has_surfaces(config.model):
+        return [f"the {correction.passes} correction passes after training were not run (the run stopped before them); "
                 f"finish it with kneas-train --resume {run_dir}"]
     return []

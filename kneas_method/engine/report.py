@@ -17,11 +17,10 @@ from ..console import console, say
 from .progress import _duration, summary_table
 from .run_dir import write_json
 
-# (metrics key, label) of the stages, in the order they run
-STAGES = (("prior_time_s", "prior"), ("classical_time_s", "classical volume"), ("bounds_time_s", "bounds"),
-          ("reconstruct_time_s", "reconstruction"),
-          ("warm_start_time_s", "warm start"), ("train_time_s", "training"), ("correction_time_s", "correction"),
-          ("materials_time_s", "materials"), ("eval_time_s", "evaluation"))
+# (metrics key, label) of the core's times and the classical runs', in the order they run; the stages'
+# times are their records' ``seconds`` (``stages`` in metrics.json)
+CORE_TIMES = (("prior_time_s", "prior"), ("bounds_time_s", "bounds"), ("reconstruct_time_s", "reconstruction"),
+              ("train_time_s", "training"))
 
 
 def split_per_view(metrics: dict) -> tuple[dict, dict]:
@@ -64,27 +63,20 @@ def classical_metrics(config, scene, reconstruction, evaluation, device) -> dict
     return out
 
 
-def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classical_time_s: float,
-                   classical_volume: Optional[str], session_wall_time_s: float, correction: Optional[list] = None) -> dict:
+def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, stages: list[str], records: dict,
+                   session_wall_time_s: float) -> dict:
     """``metrics.json`` of a neural run (``bounds``: a BoundsResult, or None without surfaces;
-    ``correction``: the band-correction passes, or None where there were none)."""
+    ``stages``: the names of the stages it ran, in order; ``records``: what each did)."""
     out, facts = _common(config, scene, evaluation, device)
     per_view = facts.pop("_per_view")
     prior_time = bounds.prior_wall_time_s if bounds is not None else 0.0
     bounds_time = float(bounds.details.get("fit_time_s", 0.0)) if bounds is not None else 0.0  # the GMM fit
-    correction_time = float(trainer.correction_time_s) if correction is not None else 0.0
-    refit = trainer.materials_refit
-    materials_time = float(refit.get("seconds", 0.0)) if refit else 0.0
-    out.update(parameters=trainer.model.num_parameters(), steps=trainer.step, epochs=trainer.epochs,
-               wall_time_s=trainer.wall_time_s + trainer.warm_start_time_s + prior_time + classical_time_s + bounds_time
-               + correction_time + materials_time + evaluation.seconds,
-               train_time_s=trainer.wall_time_s, warm_start_time_s=trainer.warm_start_time_s, warm_start=config.trainer.warm_start,
-               prior_time_s=prior_time, classical_time_s=classical_time_s, bounds_time_s=bounds_time, classical_volume=classical_volume,
-               correction_time_s=correction_time, correction=correction,
-               correction_budget=trainer.correction_budget if correction is not None else None,
-               training_budget=trainer.training_budget,
-               denoising=trainer.denoising if correction is not None else None,
-               materials_time_s=materials_time, materials_refit=refit, loss_scale=float(trainer.model.loss_scale),
+    ran = {name: records.get(name) for name in stages}
+    stage_time = sum(float((r or {}).get("seconds", 0.0)) for r in ran.values())
+    out.update(parameters=trainer.model.num_parameters(), steps=trainer.step, epochs=trainer.epochs, procedure=config.procedure,
+               wall_time_s=trainer.wall_time_s + prior_time + bounds_time + stage_time + evaluation.seconds,
+               train_time_s=trainer.wall_time_s, prior_time_s=prior_time, bounds_time_s=bounds_time,
+               stages=ran, loss_scale=float(trainer.model.loss_scale),
                eval_time_s=evaluation.seconds, **facts, bad_steps=len(trainer.bad_steps))
     if trainer.model.has_surfaces:
         out["num_materials"] = int(trainer.model.num_materials)
@@ -99,8 +91,15 @@ def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, classi
 
 
 def stage_times(metrics: dict) -> str:
-    """``prior 0 s, classical volume 2 s, ..., total 8 min 10 s`` (stages that took time)."""
-    parts = [f"{label} {_duration(metrics[k])}" for k, label in STAGES if isinstance(metrics.get(k), (int, float)) and metrics[k] > 0]
+    """``prior 0 s, classical-start 28 s, ..., total 8 min 10 s`` (what took time, in the order it ran)."""
+    records = metrics.get("stages") if isinstance(metrics.get("stages"), dict) else {}
+    seconds = {name: (r or {}).get("seconds") if isinstance(r, dict) else None for name, r in records.items()}
+    core = {label: metrics.get(key) for key, label in CORE_TIMES}
+    times = ([("classical-start", seconds.get("classical-start"))] + [(label, core[label]) for label in ("prior", "bounds", "reconstruction")]
+             + [("warm-start", seconds.get("warm-start")), ("training", core["training"])]
+             + [(name, v) for name, v in seconds.items() if name not in ("classical-start", "warm-start")]
+             + [("evaluation", metrics.get("eval_time_s"))])
+    parts = [f"{label} {_duration(v)}" for label, v in times if isinstance(v, (int, float)) and v > 0]
     total = metrics.get("wall_time_s")
     if isinstance(total, (int, float)):
         parts.append(f"total {_duration(total)}")

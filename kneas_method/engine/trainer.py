@@ -34,9 +34,7 @@ import torch
 
 from ..errors import KneasError
 from ..evaluation.metrics import psnr2d
-from .anchor import Anchor, edge_trust, label_interior
 from .checkpoint import load_latest_checkpoint, save_checkpoint
-from .loss_scale import LOSS_SCALE_TOP, loss_scale
 from .progress import format_losses, stage_progress
 
 
@@ -72,7 +70,22 @@ class _DeferredInterrupt:
         return False
 
 
-REFIT_SEED_OFFSET = 15485863  # the materials refit's initialisation and draws: the run's seed plus this
+def stage_records(extra: dict) -> dict[str, Any]:
+    """The stages' records a checkpoint's ``extra`` holds (``extra["stages"]``); a checkpoint written
+    before the stages had records of their own kept them under their own keys, read here the same way."""
+    records = dict(extra.get("stages") or {})
+    if extra.get("warm_start_time_s"):
+        records.setdefault("warm-start", {"seconds": float(extra["warm_start_time_s"])})
+    if extra.get("correction") is not None:
+        records.setdefault("correction", {"passes": extra["correction"], "budget": extra.get("correction_budget"),
+                                          "seconds": float(extra.get("correction_time_s", 0.0))})
+    if extra.get("denoising") is not None:
+        records.setdefault("smoothing", dict(extra["denoising"]))
+    if extra.get("materials_refit") is not None:
+        records.setdefault("materials-refit", dict(extra["materials_refit"]))
+    if extra.get("training_budget") is not None:
+        records.setdefault("time-budget", {"training": extra["training_budget"]})
+    return records
 
 
 def _finite_params(model: torch.nn.Module) -> bool:
@@ -102,7 +115,8 @@ class Trainer:
     """
 
     def __init__(self, config, scene, run_dir, *, epochs: int, device, bounds=None, label: str = "model", console=None,
-                 tb=None, tb_prefix: str = "", max_bad_steps: Optional[int] = None):
+                 tb=None, tb_prefix: str = "", max_bad_steps: Optional[int] = None, loss_scale: float = 1.0,
+                 records: Optional[dict] = None):
         from ..model import CTModel
 
         self.config = config
@@ -122,13 +136,9 @@ class Trainer:
         seed = int(config.seed)
         torch.manual_seed(seed)
         self.model = CTModel(config.model, scale=scene.geometry.scale, device=self.device).to(self.device)
-        self.model.loss_scale = loss_scale(scene)
+        self.model.loss_scale = float(loss_scale)
         if not self.model.has_surfaces:  # its network's outputs in the same unit (the bounds carry it for the others)
             self.model.attenuation_unit.fill_(self.model.loss_scale)
-        if self.model.loss_scale != 1.0:
-            self._print(f"{label}: losses measured in units of {self.model.loss_scale:.4g} /m, the 99.5th percentile of the scan's "
-                        f"FDK volume, which is above NAF's normalised {LOSS_SCALE_TOP:g} /m, so that they weigh as on NAF's "
-                        "scale; the volume and the bounds stay in /m")
         if bounds is not None:
             self.model.set_bounds(*bounds)
         elif self.model.has_surfaces and self.model.loss_scale != 1.0:  # NeAS's wide defaults are NAF-scale: in the scan's unit
@@ -148,16 +158,11 @@ class Trainer:
         self.history: dict[str, list[list[float]]] = {}
         self.bad_steps: list[int] = []
         self.wall_time_s = 0.0
-        self.warm_start_time_s = 0.0
+        self.train_started_at = 0.0  # time.perf_counter() when train() began (a step hook times the steps from it)
         self.last_checkpoint: Optional[Path] = None
         self.complete = False
-        self.anchor: Optional[Anchor] = None
-        self.correction: Optional[list] = None  # the band-correction passes after training (correction_stage)
-        self.correction_time_s = 0.0
-        self.correction_budget: Optional[dict] = None  # where the run's time budget ended the passes early (correction_stage)
-        self.training_budget: Optional[dict] = None  # where it shortened training (train(deadline=...))
-        self.denoising: Optional[dict] = None  # the SURE smoothing after the passes (correction_stage.denoise_stage)
-        self.materials_refit: Optional[dict] = None  # the materials found again on the trained volume (materials_stage)
+        # what the procedure's stages did (stages.base.RunState.records): kept in every checkpoint
+        self.records: dict[str, Any] = records if records is not None else {}
 
     def _make_optimizer(self) -> None:
         """A fresh Adam optimiser over the model's parameters and the learning-rate schedule."""
@@ -185,14 +190,8 @@ class Trainer:
                 "history": self.history,
                 "bad_steps": list(self.bad_steps),
                 "wall_time_s": float(self.wall_time_s),
-                "warm_start_time_s": float(self.warm_start_time_s),
                 "num_materials": int(self.model.num_materials),
-                "correction": self.correction,
-                "correction_time_s": float(self.correction_time_s),
-                "correction_budget": self.correction_budget,
-                "training_budget": self.training_budget,
-                "denoising": self.denoising,
-                "materials_refit": self.materials_refit,
+                "stages": self.records,
             },
         }
 
@@ -211,14 +210,8 @@ class Trainer:
         self.history = {k: [list(map(float, p)) for p in v] for k, v in extra.get("history", {}).items()}
         self.bad_steps = [int(s) for s in extra.get("bad_steps", [])]
         self.wall_time_s = float(extra.get("wall_time_s", 0.0))
-        self.warm_start_time_s = float(extra.get("warm_start_time_s", 0.0))
         self.complete = bool(extra.get("complete", False))
-        self.correction = extra.get("correction")
-        self.correction_time_s = float(extra.get("correction_time_s", 0.0))
-        self.correction_budget = extra.get("correction_budget")
-        self.training_budget = extra.get("training_budget")
-        self.denoising = extra.get("denoising")
-        self.materials_refit = extra.get("materials_refit")
+        self.records.update(stage_records(extra))
 
     def resume(self) -> Optional[Path]:
         """Load the newest checkpoint of this stage, if any; returns its path."""
@@ -254,11 +247,15 @@ class Trainer:
         return {k: [tuple(p) for p in v] for k, v in self.history.items() if k not in ("lr", "val_psnr2d")}
 
     # -------------------------------------------------------------- helpers
-    def _print(self, msg: str) -> None:
+    def say(self, msg: str) -> None:
+        """One line on the trainer's console (above a live progress bar)."""
         if self.console is not None:
             self.console.print(msg, soft_wrap=True)
 
-    def _record(self, name: str, value: float) -> None:
+    _print = say
+
+    def record(self, name: str, value: float) -> None:
+        """Append ``value`` at the current step to the loss history's ``name`` (and TensorBoard)."""
         self.history.setdefault(name, []).append([float(self.step), float(value)])
         if self.tb is not None:
             self.tb.add_scalar(f"{self.tb_prefix}{name}", value, self.step)
@@ -277,249 +274,39 @@ class Trainer:
         pred = held_out_projections(self.model, self.scene, self.config, self.device, np.asarray(val.angles)[idx])
         return float(np.mean(psnr2d(pred, np.asarray(val.projections)[idx])))
 
-    # ----------------------------------------------------------- warm start
-    def _voxel_targets(self, volume: np.ndarray, what: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """The voxel centres ``[V, 3]`` (model units) and ``volume``'s values there ``[V]`` (data
-        units, negative values clipped to 0); ``volume`` must be on the scene's voxel grid."""
-        if tuple(volume.shape) != tuple(self.scene.geometry.n_voxel):
-            raise KneasError(f"{what} volume has shape {tuple(volume.shape)} but the scene's grid is "
-                             f"{tuple(self.scene.geometry.n_voxel)}; recompute it for this scene")
-        points = self.scene.geometry.voxel_centres(device=self.device).reshape(-1, 3)
-        targets = torch.as_tensor(np.clip(np.asarray(volume, dtype=np.float32), 0.0, None), device=self.device).reshape(-1)
-        return points, targets
-
-    def warm_start(self, volume: np.ndarray, steps: int, points_per_step: int, what: str = "FDK",
-                   occupancy_weight: float = 0.0) -> float:
-        """Fit the fresh model to an attenuation ``volume`` (data units, the scene's voxel
-        grid; negative values clipped to 0) before projection training: ``steps`` Adam
-        steps at the trainer's learning rate, each on ``points_per_step`` random voxel
-        centres, loss = MSE of ``mu`` + ``occupancy_weight`` x the per-material occupancy
-        cross-entropy (``CTModel.volume_loss_dict``) + the model's eikonal term. Seeded from the run's
-        seed; leaves the training optimiser, sampler and RNG states untouched (so a
-        resumed run matches a straight one). Returns the wall time in seconds."""
-        if self.step != 0:
-            raise KneasError(f"the warm start runs before training, but the {self.label} stage is at step {self.step}")
-        started = time.perf_counter()
-        values = self._fit_whole_volume(volume, "warm-start", steps, points_per_step, occupancy_weight, 104729, f"{self.label} warm start",
-                                        f"fit to the {what} volume", f"check the {what} volume or use --trainer.warm-start none")
-        for k, v in values.items():
-            self._record(f"warm_start_{k}", v)
-        self.warm_start_time_s = time.perf_counter() - started
-        return self.warm_start_time_s
-
-    def _fit_whole_volume(self, volume: np.ndarray, name: str, steps: int, points_per_step: int, occupancy_weight: float,
-                          seed_offset: int, task: str, info: str, fix: str) -> dict[str, float]:
-        """``steps`` steps of ``_fit_steps`` on ``points_per_step`` voxel centres drawn anywhere in
-        the box (seeded from the run's seed + ``seed_offset``) at the trainer's learning rate;
-        ``name``: the volume, as a wrong shape's error names it."""
-        points, targets = self._voxel_targets(volume, name)
-        gen = torch.Generator(device="cpu")
-        gen.manual_seed(int(self.config.seed) + int(seed_offset))
-        n = min(int(points_per_step), len(points))
-        return self._fit_steps(points, targets, lambda: torch.randint(0, len(points), (n,), generator=gen).to(self.device),
-                               int(steps), float(self.config.trainer.lr), float(occupancy_weight), task, info, fix)
-
-    def refit_materials(self, volume: np.ndarray, alphas: Sequence[float], betas: Sequence[float], steps: int,
-                        points_per_step: int, occupancy_weight: float, what: str = "trained") -> None:
-        """Replace the trained model by a fresh one with ``len(alphas)`` materials and these bounds
-        (data units; ``config.num_materials`` follows), the old one's empty-space and voxel grids,
-        and fit it to ``volume`` [nx, ny, nz] (data units) as the warm start fits (``steps`` steps on
-        ``points_per_step`` voxel centres, the occupancy cross-entropy at ``occupancy_weight``).
-        The optimiser and its schedule are made afresh for the new parameters: the stage runs after
-        training, and they only keep a checkpoint loadable."""
-        from ..model import CTModel
-
-        old = self.model
-        K = len(alphas)
-        model_config = dataclasses.replace(self.config.model, num_materials=K)
-        self.config = dataclasses.replace(self.config, num_materials=K, model=model_config)
-        torch.manual_seed(int(self.config.seed) + REFIT_SEED_OFFSET)
-        model = CTModel(model_config, scale=self.scene.geometry.scale, device=self.device).to(self.device)
-        model.set_bounds(alphas, betas)
-        model.loss_scale = old.loss_scale
-        if old.occupancy is not None:
-            model.set_occupancy(old.occupancy, old.occupancy_box[0].tolist(), old.occupancy_box[1].tolist())
-        if model.quadrature == "voxel-planes":
-            model.set_voxel_grid(old.voxel_count.tolist(), old.voxel_box[0].tolist(), old.voxel_box[1].tolist())
-        self.model = model
-        self._make_optimizer()
-        self._fit_whole_volume(volume, what, steps, points_per_step, occupancy_weight, REFIT_SEED_OFFSET, f"{self.label} materials fit",
-                               f"fit of {K} materials to the {what} volume", "use --trainer.materials-refit-steps 0")
-        self.model.eval()
-
-    def _fit_steps(self, points: torch.Tensor, targets: torch.Tensor, draw, steps: int, lr: float, occupancy_weight: float,
-                   task: str, info: str, fix: str, curvature: float = 0.0,
-                   generator: Optional[torch.Generator] = None) -> dict[str, float]:
-        """``steps`` Adam steps (a fresh optimiser at ``lr``) fitting ``mu`` at ``points[draw()]`` to
-        ``targets`` (``CTModel.volume_loss_dict``), with a progress bar; returns the last loss values.
-        ``curvature`` > 0 adds the surface-smoothness term with steps of one voxel in random
-        directions drawn with ``generator``. With ``TrainConfig.fit_outside`` ``skip`` the field is
-        queried only at the draws inside the occupancy grid (``queried`` of ``volume_loss_dict``)."""
-        queried = None
-        if str(self.config.trainer.fit_outside) == "skip":
-            inside = self.model.occupied(points)
-            queried = None if inside is None else inside > 0
-        voxel = float(min(self.scene.geometry.d_voxel))
-        optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
-        self.model.train()
-        values: dict[str, float] = {}
-        with stage_progress(self.console) as progress:
-            bar = progress.add_task(task, total=steps, info=info)
-            for i in range(steps):
-                idx = draw()
-                offsets = None
-                if curvature > 0:
-                    u = torch.randn(len(idx), 3, generator=generator).to(self.device)
-                    offsets = voxel * u / u.norm(dim=-1, keepdim=True)
-                losses = self.model.volume_loss_dict(points[idx], targets[idx], occupancy_weight=occupancy_weight,
-                                                     curvature_weight=curvature, steps=offsets,
-                                                     queried=None if queried is None else queried[idx])
-                optimizer.zero_grad(set_to_none=True)
-                if not torch.isfinite(losses["total"]):
-                    raise KneasError(f"non-finite loss in the {task} (step {i}); {fix}")
-                losses["total"].backward()
-                optimizer.step()
-                if i % 10 == 0 or i == steps - 1:
-                    values = {k: float(v.detach()) for k, v in losses.items() if k != "total"}
-                    progress.update(bar, completed=i + 1, info=format_losses(values))
-            progress.update(bar, completed=steps)
-        self.model.zero_grad(set_to_none=True)
-        return values
-
-    def fit_to_volume(self, volume: np.ndarray, mask: np.ndarray, steps: int, points_per_step: int, lr: float,
-                      curvature: float = 0.0, what: str = "the corrected volume in the band",
-                      stage: str = "correction") -> None:
-        """Fit the trained model to ``volume`` (data units, the scene's grid) for ``steps`` Adam steps
-        at ``lr``: each on ``points_per_step`` voxel centres inside ``mask`` [nx, ny, nz] (bool) and a
-        quarter as many anywhere, loss = MSE of ``mu`` + the eikonal term (``CTModel.volume_loss_dict``)
-        + ``curvature`` x the surface-smoothness term (``losses.curvature``; 0 = none).
-        ``what``: the target, as the progress bar names it; ``stage``: ``correction`` or ``denoise``, the
-        stage it belongs to (the progress bar's label, and the flag a failure names to skip it).
-        Seeded from the run's seed and the step; the training optimiser and RNG are untouched."""
-        points, targets = self._voxel_targets(volume, "correction")
-        inside = torch.as_tensor(np.asarray(mask).reshape(-1), device=self.device).nonzero()[:, 0]
-        if len(inside) == 0:
-            return
-        gen = torch.Generator(device="cpu")
-        gen.manual_seed(int(self.config.seed) + 7919 + self.step)
-        n = int(points_per_step)
-
-        def draw() -> torch.Tensor:
-            return torch.cat([inside[torch.randint(0, len(inside), (n,), generator=gen).to(self.device)],
-                              torch.randint(0, len(points), (n // 4,), generator=gen).to(self.device)])
-
-        skip = "use --trainer.denoise none" if stage == "denoise" else "use --trainer.correction-passes 0"
-        self._fit_steps(points, targets, draw, int(steps), float(lr), 0.0, f"{self.label} {stage} fit",
-                        f"fit to {what}", skip,
-                        curvature=float(curvature), generator=gen)
-        self.model.eval()
-
-    def set_anchor(self, volume: np.ndarray, weight: float, points_per_step: int, occupancy_weight: float = 0.0,
-                   edge_contrast: float = 0.0, region: str = "box", outside: str = "labels") -> None:
-        """Keep ``volume`` (data units, the scene's voxel grid; negative values clipped to 0) as a
-        prior during projection training: every step adds :meth:`anchor_loss`. Weight 0 = none;
-        ``occupancy_weight`` > 0 keeps the labels its values give too (SDF models), only where
-        they are trusted: :func:`~.anchor.label_interior`, away from the volume's edges;
-        ``edge_contrast`` > 0 weighs each voxel's value by :func:`~.anchor.edge_trust` (less at
-        its sharp edges). ``region`` ``hull`` keeps only the voxel centres inside the model's
-        occupancy grid, the weight times their share of the voxels (the ``box``'s loss in
-        expectation; see ``TrainConfig.anchor_region``); without a grid it is the box. ``outside``
-        ``skip``: the box's draws outside the occupancy grid are left out of the field's query
-        (``TrainConfig.anchor_outside``)."""
-        if region not in ("box", "hull"):
-            raise KneasError(f"the anchor's region is {region!r}; choose box or hull (--trainer.anchor-region)")
-        if outside not in ("labels", "skip"):
-            raise KneasError(f"the anchor's outside rule is {outside!r}; choose labels or skip (--trainer.anchor-outside)")
-        if weight <= 0:
-            self.anchor = None
-            return
-        points, targets = self._voxel_targets(volume, "prior")
-        mask = values = None
-        if occupancy_weight > 0 and self.model.has_surfaces:
-            thresholds = self.model.label_thresholds().detach().cpu().numpy()
-            mask = torch.as_tensor(label_interior(np.clip(volume, 0.0, None), thresholds).reshape(-1), device=self.device)
-        if edge_contrast > 0:
-            values = torch.as_tensor(edge_trust(volume, edge_contrast).reshape(-1), device=self.device)
-        inside = self.model.occupied(points) if (region == "hull" or outside == "skip") else None
-        out_of_grid = None
-        if inside is not None and region == "hull" and bool((inside > 0).any()):
-            keep = (inside > 0).nonzero()[:, 0]
-            weight = float(weight) * len(keep) / len(points)
-            points, targets = points[keep], targets[keep]
-            mask = None if mask is None else mask[keep]
-            values = None if values is None else values[keep]
-        elif inside is not None and outside == "skip":
-            out_of_grid = inside <= 0
-        self.anchor = Anchor(points, targets, float(weight), int(points_per_step), float(occupancy_weight), mask, values,
-                             out_of_grid)
-
-    def anchor_loss(self) -> torch.Tensor:
-        """``weight`` x (the MSE between ``mu`` and the prior volume, each voxel times its
-        ``value_weights`` where set, + ``occupancy_weight`` x the per-material occupancy
-        cross-entropy on its trusted labels, ``CTModel.occupancy_loss``) at ``points_per_step``
-        voxel centres drawn with the run's loss generator (so a resumed run draws the same ones).
-        With ``Anchor.outside`` the field is queried only at the draws inside the occupancy grid:
-        outside it ``mu`` is 0 whatever the field, so their squared error is the same constant
-        (kept in the value) and their label term is left out; the means keep all the draws'
-        counts, so the gradient inside the grid is the one every draw's query gives."""
-        a = self.anchor
-        n = min(a.points_per_step, len(a.points))
-        idx = torch.randint(0, len(a.points), (n,), generator=self.generator).to(self.device)
-        if a.outside is None:
-            q = self.model.query(a.points[idx])
-            squared = (q["mu"] - a.targets[idx]) ** 2
-            loss = torch.mean(squared if a.value_weights is None else a.value_weights[idx] * squared)
-            if self.model.loss_scale != 1.0:  # in the model's loss unit, as its other terms
-                loss = loss / self.model.loss_scale ** 2
-            if a.label_mask is not None:
-                loss = loss + a.occupancy_weight * self.model.occupancy_loss(q["distances"], a.targets[idx], mask=a.label_mask[idx])
-            return a.weight * loss
-        gone = a.outside[idx]
-        queried = idx[~gone]
-        unseen = a.targets[idx[gone]] ** 2  # (0 - target)^2 at the draws outside the grid
-        constant = (unseen if a.value_weights is None else a.value_weights[idx[gone]] * unseen).sum()
-        q = self.model.query(a.points[queried])
-        squared = (q["mu"] - a.targets[queried]) ** 2
-        squared = squared if a.value_weights is None else a.value_weights[queried] * squared
-        loss = (squared.sum() + constant) / n
-        if self.model.loss_scale != 1.0:  # in the model's loss unit, as its other terms
-            loss = loss / self.model.loss_scale ** 2
-        if a.label_mask is not None:  # the mean over every draw's trusted labels, as a query of every draw gives
-            labels = self.model.occupancy_loss(q["distances"], a.targets[queried], mask=a.label_mask[queried])
-            loss = loss + a.occupancy_weight * labels * a.label_mask[queried].sum().clamp(min=1) / a.label_mask[idx].sum().clamp(min=1)
-        return a.weight * loss
-
-    def shorten(self, total_steps: int, seconds_per_step: float, left: float, say: Callable[[str], None] = print) -> None:
+    # ------------------------------------------------------------ schedule
+    def shorten(self, total_steps: int) -> None:
         """Train ``total_steps`` (whole epochs) instead of the planned steps, the learning rate's step at
-        the same share of them, because the run's time budget (``left`` seconds of it) does not hold them
-        at ``seconds_per_step``; ``config.json`` is rewritten with the epochs, so that a resumed run
-        trains the same, and ``training_budget`` keeps what was done."""
+        the same share of them (a time budget that does not hold them); ``config.json`` is rewritten
+        with the epochs, so that a resumed run trains the same."""
         from .run_dir import save_run_config
 
         t = self.config.trainer
-        planned, planned_steps = self.epochs, self.total_steps
         self.epochs = int(total_steps) // self.steps_per_epoch
         self.total_steps = self.epochs * self.steps_per_epoch
         self.decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
         self.config = dataclasses.replace(self.config, trainer=dataclasses.replace(t, epochs=self.epochs))
         save_run_config(self.run_dir, self.config)
-        self.training_budget = {"epochs_planned": planned, "epochs": self.epochs,
-                                "seconds_per_step": round(float(seconds_per_step), 5), "seconds_left": round(float(left), 1)}
-        say(f"{self.label}: the run's time budget (--trainer.time-budget; 0 = none) has {left:.0f} s left, and a step takes "
-            f"{seconds_per_step:.3f} s: {self.total_steps} of the {planned_steps} steps ({self.epochs} of {planned} epochs) leave the "
-            "band-correction passes their time, so training is shortened to them (--trainer.time-budget 0 trains them all)")
+
+    def replace_model(self, model, config) -> None:
+        """Train ``model`` (built for ``config``, the run's config with its K) from now on, with a fresh
+        optimiser and schedule for its parameters (a stage after training replaced the model; they
+        only keep a checkpoint loadable)."""
+        self.model, self.config = model, config
+        self._make_optimizer()
 
     # ----------------------------------------------------------------- loop
-    def train(self, on_step: Optional[Callable[[int], None]] = None, deadline: Optional[float] = None, passes: bool = False) -> None:
+    def train(self, loss_terms: Optional[dict[str, Callable[[], torch.Tensor]]] = None,
+              step_hooks: Sequence[Callable[["Trainer"], None]] = ()) -> None:
         """Run the remaining steps; raise StageInterrupted on Ctrl-C, KneasError on repeated bad steps.
 
-        ``deadline``: when the run's time budget runs out (``time.perf_counter`` seconds; None: no
-        budget). After ``budget.TIMED_STEPS`` steps training is shortened, where it must be, to the
-        whole epochs that leave the run's band-correction passes (``passes``) their time
-        (:meth:`shorten`, ``budget.training_steps``)."""
+        ``loss_terms``: name -> a function of no arguments whose loss every step adds (a stage's, such as
+        the anchor); ``step_hooks``: called with the trainer after every step (a stage's, such as the
+        time budget's, which may :meth:`shorten` training)."""
         if self.complete or self.step >= self.total_steps:
             self.complete = True
             return
+        loss_terms = dict(loss_terms or {})
         t = self.config.trainer
         eval_every = int(t.eval_every or 0)
         ckpt_every = int(t.checkpoint_every or 0)
@@ -527,10 +314,7 @@ class Trainer:
         consecutive = 0
         self.model.train()
         progress = stage_progress(self.console)
-        started = time.perf_counter()
-        from .budget import TIME_RESERVE_S, TIMED_STEPS, training_steps
-
-        timed_from, check_at = started, (self.step + TIMED_STEPS if deadline is not None else None)
+        started = self.train_started_at = time.perf_counter()
         last_info = ""
         with progress, _DeferredInterrupt() as interrupt:
             task = progress.add_task(self.label, total=self.total_steps, completed=self.step, info="")
@@ -539,9 +323,9 @@ class Trainer:
                     batch = self.datamanager.next_train()
                     frac = self.step / self.total_steps
                     losses = self.model.loss_dict(batch, frac, generator=self.generator)
-                    if self.anchor is not None:
-                        losses["anchor"] = self.anchor_loss()
-                        losses["total"] = losses["total"] + losses["anchor"]
+                    for name, term in loss_terms.items():
+                        losses[name] = term()
+                        losses["total"] = losses["total"] + losses[name]
                     total = losses["total"]
                     ok = bool(torch.isfinite(total))
                     self.optimizer.zero_grad(set_to_none=True)
@@ -561,9 +345,9 @@ class Trainer:
                     self.step += 1
                     values = {k: float(v.detach()) for k, v in losses.items()}
                     for k, v in values.items():
-                        self._record(k, v)
+                        self.record(k, v)
                     if self.step % log_every == 0 or self.step == self.total_steps:
-                        self._record("lr", self.optimizer.param_groups[0]["lr"])
+                        self.record("lr", self.optimizer.param_groups[0]["lr"])
                     if consecutive >= self.max_bad_steps:
                         self.wall_time_s += time.perf_counter() - started
                         started = time.perf_counter()
@@ -574,22 +358,17 @@ class Trainer:
                     if self.step % 5 == 0 or self.step == self.total_steps:
                         last_info = format_losses({k: v for k, v in values.items() if k != "total"})
                     progress.update(task, completed=self.step, info=last_info)
-                    if on_step is not None:
-                        on_step(self.step)
-                    if self.step == check_at:
-                        now = time.perf_counter()
-                        per_step = (now - timed_from) / TIMED_STEPS
-                        fits = training_steps(deadline - TIME_RESERVE_S - now, self.step, self.total_steps, per_step,
-                                              self.steps_per_epoch, passes)
-                        if fits < self.total_steps:
-                            self.shorten(fits, per_step, deadline - now, say=progress.console.print)
-                            progress.update(task, total=self.total_steps)
+                    planned = self.total_steps
+                    for hook in step_hooks:
+                        hook(self)
+                    if self.total_steps != planned:
+                        progress.update(task, total=self.total_steps)
                     epoch_done = self.step % self.steps_per_epoch == 0
                     epoch = self.step // self.steps_per_epoch
                     last = self.step == self.total_steps
                     if epoch_done and eval_every and epoch % eval_every == 0 and not last:
                         p = self.validate()
-                        self._record("val_psnr2d", p)
+                        self.record("val_psnr2d", p)
                         progress.console.print(f"{self.label} epoch {epoch}/{self.epochs}: validation PSNR2D {p:.2f} dB "
                                                f"({t.eval_views or 'all'} held-out views)")
                     if last or (epoch_done and ckpt_every and epoch % ckpt_every == 0) or interrupt.requested:

@@ -1,6 +1,6 @@
 """Surface smoothness of signed distance fields: how far the normals turn within a short step.
 
-Used by the band correction's fits (``Trainer.fit_to_volume``, ``--trainer.correction-curvature``):
+Used by the band correction's fits (``stages.volume_fit.fit_in_region``, ``--stages.correction.curvature``):
 the views leave part of an edge's position free (what 50 projections do not see), and the fit
 of each pass fills that part from the field's own prior. This term makes that prior prefer
 surfaces whose normals turn slowly, i.e. smooth surfaces, over the voxel-scale ripples a

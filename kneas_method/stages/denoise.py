@@ -21,13 +21,13 @@ For the bilateral filter (:func:`bilateral`, not linear) it is estimated by Mont
 absolute value) of the differences ``v(x) - v(x + k)``, which is ``2 (c(0) - c(k))`` for noise and
 barely moved by the few voxels at edges, and ``c(0)`` from differences ``far`` voxels apart, where
 the noise is taken as uncorrelated. The white-noise SURE (``c(k) = 0`` off the centre) under-smooths
-such noise (jaw-noisy: s 0.4 against the best 0.8, docs/experiments.md, 64th stop).
+such noise (jaw-noisy: s 0.4 against the best 0.8).
 
 The bilateral filter averages a voxel with its neighbours along each axis in turn, each weighted by
 distance (a Gaussian of ``sigma`` voxels) and by how close its value is in a lightly smoothed guide
 (a Gaussian of ``range_std``, a multiple of the noise's standard deviation): it averages the noise
 out inside each material over several voxels without carrying one material across an edge, which
-a Gaussian cannot (jaw-noisy 36.5 dB against the best Gaussian's 34.8, 65th stop).
+a Gaussian cannot (jaw-noisy 36.5 dB against the best Gaussian's 34.8).
 
 Where no smoothing lowers the estimate (a clean scan: the differences are edges and texture, and
 every filter costs more than it removes) :func:`sure_smoothing` returns the volume as it is.
@@ -56,7 +56,7 @@ from typing import Callable, Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from .correction import MAD_TO_STD
+from .band_correction import MAD_TO_STD
 
 __all__ = ["OFFSETS", "SIGMAS", "BILATERALS", "gaussian_taps", "gaussian_blur", "bilateral", "shifted_pairs",
            "robust_variance", "noise_autocovariance", "correlated_noise", "sure", "monte_carlo_sure", "sure_smoothing",

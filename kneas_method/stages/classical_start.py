@@ -1,4 +1,5 @@
-"""A classical reconstruction of a neural run's training views, for its bounds and warm start.
+"""The classical start: a classical reconstruction of a neural run's training views, which the
+bounds, the warm start and the anchor then use (``--stages.classical-start.algorithm``).
 
 Computed once per run and kept in the run folder as ``<algorithm>_volume.npy`` (data
 units) with ``<algorithm>_volume.json`` (settings, seconds), so a resumed run reuses it.
@@ -11,22 +12,24 @@ views say little (outside the field of view), and ASD-POCS run on spreads less i
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import atomic_write
-from ..classical.options import ReconstructionOptions
+from ..classical.options import Algorithm, ReconstructionOptions
 from ..classical.reconstruct import Reconstruction, algorithm_settings, reconstruct
 from ..console import say
+from ..engine.progress import stage_progress
+from ..engine.run_dir import read_json, write_json
 from ..errors import KneasError
-from .progress import stage_progress
-from .run_dir import read_json, write_json
+from .base import RunState, Stage, StageConfig
 
 
 # Iterations of a neural run's classical start where the object is wider than the field of view and
-# --reconstruction.iterations is not given. ASD-POCS 40 (its default 10): measured on the held-out
-# knee-narrow (docs/experiments.md); the other algorithms keep their defaults (not measured).
+# --reconstruction.iterations is not given: ASD-POCS spreads less into the air outside the field of
+# view when run further; the other algorithms keep their defaults.
 WIDE_START_ITERATIONS = {"asd-pocs": 40}
 
 
@@ -54,7 +57,7 @@ def classical_volume(algorithm: str, options: ReconstructionOptions, scene, run_
         except (OSError, ValueError, KneasError):
             pass
     count = f" ({wanted} iterations)" if wanted else ""
-    say(f"{algorithm}: reconstructing {len(scene.train)} training views for the bounds / warm start{count}")
+    say(f"{algorithm}: reconstructing {len(scene.train)} training views for the classical start{count}")
     with stage_progress(console, unit="iterations") as progress:
         task = progress.add_task(algorithm, total=None, info="")
 
@@ -66,3 +69,33 @@ def classical_volume(algorithm: str, options: ReconstructionOptions, scene, run_
     atomic_write(path, lambda fh: np.save(fh, volume))
     write_json(info_path, {"seconds": rec.seconds, "settings": rec.settings})
     return rec
+
+
+@dataclass
+class ClassicalStartConfig(StageConfig):
+    """The classical start (not in the paper): reconstruct the training views with ``algorithm``
+    (settings: the run's ``--reconstruction.*``) before the bounds; the automatic bounds are then
+    estimated on this volume instead of a trained NeAS-1M prior, and the warm start and the anchor
+    use it.
+
+    Attributes:
+        algorithm: the classical method (ASD-POCS: the one made for few views).
+    """
+
+    _target = "kneas_method.stages.classical_start:ClassicalStart"
+    name = "classical-start"
+    phase = "start"
+    algorithm: Algorithm = "asd-pocs"
+
+    def describe(self) -> str:
+        return f"classical start: an {self.algorithm.upper()} reconstruction of the training views (the bounds, the warm start and the anchor use it)"
+
+
+class ClassicalStart(Stage):
+    def run(self, state: RunState) -> None:
+        algorithm = self.config.algorithm
+        options = start_options(algorithm, state.config.reconstruction, state.fitting_wider_than_view)
+        rec = classical_volume(algorithm, options, state.scene, state.run_dir, state.device)
+        state.start = (np.asarray(rec.volume), algorithm)
+        state.classical_seconds += rec.seconds
+        state.records[self.name] = {"algorithm": algorithm, "seconds": float(rec.seconds), "settings": rec.settings}

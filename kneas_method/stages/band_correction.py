@@ -2,7 +2,7 @@
 
 After training, the model's volume ``v`` (its attenuation at the voxel centres) still leaves a
 residual on the training projections ``b``. Almost all of ``v``'s error lies in a thin band
-around its edges (``docs/experiments.md``, "What the 50 views see of the error"), and confined
+around its edges (``benchmarks/visible_error.py`` measures it), and confined
 to that band the views determine much of it. The correction is ``x``, from CGLS on
 ``(A M) x = r`` started at 0, with:
 
@@ -46,7 +46,7 @@ from typing import Callable, Optional
 import torch
 import torch.nn.functional as F
 
-from .errors import KneasError
+from ..errors import KneasError
 
 __all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
@@ -57,7 +57,7 @@ MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal n
 QUERY_CHUNK = 32768  # points per model query: 2x faster on a CPU than 262144 (cache)
 INTERPOLATION_CHUNK = 1 << 18  # fine points per interpolation of the queried fields
 FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
-RING_WEIGHT = 0.5  # the ring rule's weight of the band's outer ring (56th stop)
+RING_WEIGHT = 0.5  # the ring rule's weight of the band's outer ring: half as free as the steep voxels
 GRADIENT_WEIGHT_CAP = 4.0  # gradient weights: at most sqrt(4) = 2, at 4x the steep voxels' median gradient
 
 
@@ -170,7 +170,7 @@ def band_fields(model, geometry, band: torch.Tensor, coarse: int) -> tuple[torch
     cells = grid.nonzero()
     if len(cells) >= 2 ** 31:
         raise KneasError(f"the band correction's {c}x grid would hold {len(cells):,} band cells, more than an int32 index "
-                         "holds; use --trainer.correction-passes 0 or a coarser reconstruction grid")
+                         "holds; use --skip-stages correction or a coarser reconstruction grid")
     index = torch.full(grid.shape, -1, dtype=torch.int32, device=band.device)  # half of int64's memory (0.5 GB at 512^3)
     index[grid] = torch.arange(len(cells), dtype=torch.int32, device=band.device)
     axes = geometry.refined(c).voxel_axes(device=band.device)
@@ -245,7 +245,7 @@ def discretisation_error(model, geometry, volume: torch.Tensor, band: torch.Tens
     composed there (``CTModel.compose``): the sharp edges come from the selector, not from the
     query, so it takes ``(coarse / fine)^3`` of the queries of every fine point, with the same error
     against the truth's (measured on jaw and abdomen; an estimating pass on abdomen 14 s instead of
-    23-29 s, 2 cores; ``docs/experiments.md``).
+    23-29 s, 2 cores).
     """
     coarse = min(int(coarse), int(fine))
     w = F.interpolate(volume[None, None], scale_factor=fine, mode="trilinear", align_corners=False)[0, 0]
@@ -323,7 +323,7 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     """
     import time
 
-    from .classical.projector import Projector
+    from ..classical.projector import Projector
 
     t0 = time.perf_counter()
     say = progress or (lambda message: None)
@@ -333,10 +333,10 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
     b = projections.float()
     ring = RING_WEIGHT if ring is None else float(ring)
     if not 0.0 <= ring <= 1.0:
-        raise KneasError(f"the correction's ring weight is {ring!r}; give --trainer.correction-ring a number from 0 (the steep "
+        raise KneasError(f"the correction's ring weight is {ring!r}; give --stages.correction.ring a number from 0 (the steep "
                          "voxels only) to 1 (the whole band)")
     if weighting not in ("gradient", "ring"):
-        raise KneasError(f"the correction's weighting is {weighting!r}; give --trainer.correction-weights gradient or ring")
+        raise KneasError(f"the correction's weighting is {weighting!r}; give --stages.correction.weights gradient or ring")
     steep = edge_band(volume, gradient, 0)
     band = grow(steep, dilate)
     if weighting == "gradient":

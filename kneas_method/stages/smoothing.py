@@ -1,0 +1,95 @@
+"""The smoothing (not in the paper): the trained model's volume smoothed as far as SURE says its own
+noise allows, and the model fitted to the result.
+
+``denoise.discrepancy_smoothing`` picks the filter (none, a Gaussian, or an edge-preserving bilateral
+filter) that minimises Stein's unbiased estimate of the volume's squared error under its own
+correlated noise, raising the noise estimate while the smoothed volume's projections still fit the
+training views closer than their noise (the discrepancy principle). Where no filter lowers the
+estimate (a clean scan) the volume is left as it is and the model is not touched.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from ..config import at_least
+from .base import RunState, Stage, StageConfig
+from .volume_fit import fit_in_region
+
+SmoothingRule = Literal["sure", "sure-gaussian"]
+
+
+@dataclass
+class SmoothingConfig(StageConfig):
+    """SURE-chosen smoothing of the trained model's volume, then a fit of the model to it.
+
+    Attributes:
+        rule: ``sure``: none, Gaussians or bilateral filters, whichever SURE prefers;
+            ``sure-gaussian``: none or Gaussians only.
+        steps: Adam steps of the model's fit to the smoothed volume (the whole filled volume moves).
+        lr: learning rate of that fit.
+        points: voxel centres per step of the fit.
+        curvature: weight of the fit's surface-smoothness term.
+    """
+
+    _target = "kneas_method.stages.smoothing:Smoothing"
+    name = "smoothing"
+    phase = "after-training"
+    rule: SmoothingRule = "sure"
+    steps: int = field(default=300, metadata=at_least(0, whole=True))
+    lr: float = field(default=1e-3, metadata=at_least(0))
+    points: int = field(default=8192, metadata=at_least(1, whole=True))
+    curvature: float = field(default=3e-3, metadata=at_least(0))
+
+    def describe(self) -> str:
+        return "smoothing: the volume smoothed as far as SURE says its noise allows (nothing on a clean scan), the model fitted to it"
+
+
+class Smoothing(Stage):
+    def run(self, state: RunState) -> None:
+        from ..classical.projector import Projector
+        from .band_correction import noise_variance
+        from .denoise import BILATERALS, discrepancy_smoothing
+
+        c, trainer, scene = self.config, state.trainer, state.scene
+        if state.records.get(self.name) is not None:
+            state.say(f"smoothing: already done for this run (checkpoint {trainer.last_checkpoint})")
+            return
+        started = time.perf_counter()
+        volume = state.model_volume()
+        projections = torch.as_tensor(scene.train.projections, dtype=torch.float32, device=volume.device)
+        if 1 not in state.projectors:
+            state.projectors[1] = Projector(scene.geometry, scene.train.angles, device=volume.device)
+        projector = state.projectors[1]
+
+        def misfit(v: torch.Tensor) -> float:
+            r = projections - projector.forward(v.clamp_min(0))
+            return float((r * r).mean())
+
+        data_noise = noise_variance(projections - projector.forward(volume))
+        smoothed, choice = discrepancy_smoothing(volume, misfit, data_noise, bilaterals=BILATERALS if c.rule == "sure" else ())
+        if len(choice.misfit) > 1:
+            state.say("smoothing: " + "; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise"
+                                                for m, label, r in choice.misfit[:-1])
+                      + ": closer than the noise, so the volume holds more noise than estimated, and the estimate was raised")
+        if choice.filter == "none":
+            state.say(f"smoothing: no smoothing lowers the estimated error (SURE; noise std {choice.noise_std:.3g}, "
+                      f"correlation with a neighbour {choice.neighbour_correlation:.2f}): the volume is left as it is")
+        else:
+            what = (f"a Gaussian of {choice.sigma:g} voxel" if choice.filter == "gaussian" else
+                    f"a bilateral filter of {choice.sigma:g} voxels and {choice.range_stds:g} noise std")
+            fits = f", its projections' misfit {choice.misfit[-1][2]:.3f} of the data's noise" if choice.misfit else ""
+            state.say(f"smoothing: {what} lowers the estimated squared error {choice.sure['none']:.4g} -> "
+                      f"{choice.sure[choice.label]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
+                      f"{choice.neighbour_correlation:.2f}{fits}; {choice.seconds:.0f} s); fitting the model to it "
+                      "(--skip-stages smoothing skips it)")
+            region = (volume != 0).cpu().numpy()
+            fit_in_region(trainer, smoothed.clamp_min(0).cpu().numpy(), region, int(c.steps), int(c.points), float(c.lr),
+                          curvature=float(c.curvature), what=f"the volume smoothed by {what}", stage="smoothing")
+            state.moved(volume != 0)
+        state.records[self.name] = {**choice.to_json(), "seconds": time.perf_counter() - started}
+        trainer.save(complete=True)
