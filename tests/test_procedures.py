@@ -156,3 +156,10 @@ def test_older_config_files_map_their_flat_settings_onto_the_stages():
     assert paper.procedure == "paper" and presets.stage_names(presets.resolve(paper)) == []
     with pytest.raises(ConfigError, match="unknown setting"):
         config_from_dict({"method": "k-neas", "trainer": {"no_such_setting": 1}}, "bad.json")
+
+
+def test_settings_of_a_stage_the_run_does_not_run_are_named(capsys):
+    code, out, err = run(["k-neas", "--preset", "tiny", "--dry-run", "--stages.correction.passes", "3"], capsys)
+    assert code == 0 and "note: --stages.correction.* settings are given, but this run does not run the correction stage" in out
+    code, out, err = run(["k-neas", "--preset", "tiny", "--dry-run", "--add-stages", "correction", "--stages.correction.passes", "3"], capsys)
+    assert code == 0 and "note:" not in out and "correction: up to 3 passes" in out

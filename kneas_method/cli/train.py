@@ -125,14 +125,28 @@ def dry_run(config) -> int:
     return 0
 
 
+def _unused_stage_settings(given, resolved) -> list[str]:
+    """Stages whose settings ``given`` changes from their defaults but that ``resolved`` does not run."""
+    from ..stages import BUILT_IN
+
+    if not isinstance(given, TrainConfig):
+        return []
+    defaults = type(given.stages)()
+    return [name for name, attr in BUILT_IN.items()
+            if getattr(given.stages, attr) not in (None, getattr(defaults, attr)) and getattr(resolved.stages, attr) is None]
+
+
 def run(config) -> int:
     _, reason = presets.choose(config.preset)
-    config = presets.resolve(config)
+    given, config = config, presets.resolve(config)
     if not config.dry_run:
         check_scene_spec(config.scene)  # a wrong --scene is the whole answer, before the preset's notes
     print(reason)
     for line in presets.describe(config):
         print(line)
+    for name in _unused_stage_settings(given, config):
+        print(f"note: --stages.{name}.* settings are given, but this run does not run the {name} stage "
+              f"(--add-stages {name} runs it)")
     if config.dry_run:
         return dry_run(config)
     return train(config)
