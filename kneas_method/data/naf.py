@@ -294,6 +294,58 @@ def _attach_phantom(scene: Scene) -> None:
     scene.membership = lambda pts_model: phantom.label_at(geometry.model_to_mm(np.asarray(pts_model, dtype=np.float64)))
 
 
+# keys of a scene whose labels are thresholds of its own volume (a real CT's tissues): the
+# attenuations (data units, ascending) where labels 1..M start, and the names of those labels
+LABEL_THRESHOLDS_KEY, MATERIALS_KEY = "label_thresholds", "materials"
+
+
+def threshold_membership(image: np.ndarray, thresholds, geometry):
+    """``f(points_model [P, 3]) -> labels [P]``: how many of ``thresholds`` (ascending, data units) the
+    trilinear interpolation of ``image`` [nx, ny, nz] exceeds at each point; at the voxel centres it
+    is the labels the thresholds give the volume itself."""
+    from scipy.ndimage import map_coordinates
+
+    image = np.asarray(image, dtype=np.float32)
+    levels = np.asarray(thresholds, dtype=np.float64)
+    step = np.asarray(geometry.d_voxel, dtype=np.float64)
+    first = np.array([-n * d / 2 + d / 2 + o for n, d, o in zip(geometry.n_voxel, geometry.d_voxel, geometry.off_origin)])  # as voxel_axes
+
+    def membership(points):
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        coords = ((p - first) / step).T
+        # a float32 voxel centre lands a hair off its index; snapping it keeps the volume's own labels
+        # where a voxel sits exactly on a threshold (integer HU against integer thresholds)
+        nearest = np.round(coords)
+        coords = np.where(np.abs(coords - nearest) < 1e-4, nearest, coords)
+        values = map_coordinates(image, coords, order=1, mode="nearest")
+        return np.digitize(values, levels).astype(np.uint8)
+
+    return membership
+
+
+def _attach_threshold_labels(scene: Scene, label: str) -> None:
+    """A scene (not built in) whose labels are thresholds of its volume: its material names and a
+    membership function (:func:`threshold_membership`), so that surfaces can be scored on it."""
+    thresholds, names = scene.meta.get(LABEL_THRESHOLDS_KEY), scene.meta.get(MATERIALS_KEY)
+    if thresholds is None or scene.labels is None or scene.image is None or scene.membership is not None:
+        return
+    try:
+        levels = np.asarray(thresholds, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise _fail(label, f"{LABEL_THRESHOLDS_KEY} must be a list of numbers (the attenuations where labels 1..M start)") from None
+    if levels.size < 1 or not np.all(np.isfinite(levels)) or np.any(np.diff(levels) <= 0):
+        raise _fail(label, f"{LABEL_THRESHOLDS_KEY} must be finite and ascending, got {levels.tolist()}")
+    if int(scene.labels.max(initial=0)) > levels.size:
+        raise _fail(label, f"labels go up to {int(scene.labels.max())} but {LABEL_THRESHOLDS_KEY} gives {levels.size} thresholds")
+    if names is not None:
+        if not (isinstance(names, (list, tuple)) and len(names) == levels.size and all(isinstance(n, str) for n in names)):
+            raise _fail(label, f"{MATERIALS_KEY} must be {levels.size} names, one per threshold of {LABEL_THRESHOLDS_KEY}")
+        scene.materials = tuple(names)
+    else:
+        scene.materials = tuple(f"label {k}" for k in range(1, levels.size + 1))
+    scene.membership = threshold_membership(scene.image, levels, scene.geometry)
+
+
 # --------------------------------------------------------------------------- public API
 def scene_from_dict(d: Any, label: str, *, name: str = "scene", source: str = "") -> Scene:
     """Validate a NAF scene dict and build a :class:`Scene` (raises one-line SceneError)."""
@@ -349,6 +401,7 @@ def scene_from_dict(d: Any, label: str, *, name: str = "scene", source: str = ""
     meta[GEOMETRY_MM_META] = geometry_mm
     scene = Scene(name=name, geometry=geometry, train=train, val=val, image=image, labels=labels, meta=meta, source=source)
     _attach_phantom(scene)
+    _attach_threshold_labels(scene, label)
     return scene
 
 

