@@ -42,13 +42,13 @@ def changed_config(run_dir: Path, settings: list[str]):
             value = json.loads(text)
         except ValueError:
             value = text
-        node, *path = key.split(".")
+        *sections, leaf = key.split(".")
         parent = data
-        for name in [node, *path][:-1]:
+        for name in sections:
             if not isinstance(parent.get(name), dict):
                 raise SystemExit(f"error: --set {key}: {name!r} is not a section of the run's config.json")
             parent = parent[name]
-        parent[key.split(".")[-1]] = value
+        parent[leaf] = value
     return config_from_dict(data, f"{run_dir / 'config.json'} with --set")
 
 

@@ -92,7 +92,7 @@ def resample(hu: np.ndarray, voxel_mm, longest: int | None) -> tuple[np.ndarray,
 
 def real_scene(name: str, sdist: Path):
     """The scene ``name`` of :data:`SCENES` (see the module docs)."""
-    from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, threshold_membership
+    from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, attach_threshold_labels, threshold_labels
     from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
     from kneas_method.data.volume_io import hu_to_mu
 
@@ -109,9 +109,8 @@ def real_scene(name: str, sdist: Path):
     meta = {LABEL_THRESHOLDS_KEY: thresholds, MATERIALS_KEY: list(MATERIALS), "hu_thresholds": list(HU_THRESHOLDS),
             "source_ct": f"{SDIST}:{SOURCES[source]}", "convert": True, "normalize": True, "hu_max": float(hu.max())}
     scene = simulate_from_volume(image, cfg, voxel_mm=voxel_mm, name=name, meta=meta)
-    scene.labels = np.digitize(image, thresholds).astype(np.uint8)
-    scene.materials = MATERIALS
-    scene.membership = threshold_membership(image, thresholds, scene.geometry)
+    scene.labels = threshold_labels(image, thresholds)
+    attach_threshold_labels(scene, name)  # the materials and membership a load of the pickle gives
     return scene
 
 

@@ -11,7 +11,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from conftest import run, run_dir_of  # noqa: E402
-from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, load_naf, save_naf, threshold_membership  # noqa: E402
+from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, load_naf, save_naf, threshold_labels, threshold_membership  # noqa: E402
 from kneas_method.errors import SceneError  # noqa: E402
 
 CROP = Path(__file__).resolve().parent / "data" / "ts_abdomen_crop_hu.npy"
@@ -30,7 +30,7 @@ def crop_scene():
     cfg = SimulationConfig(n_detector=32, n_train=8, n_val=4)
     scene = simulate_from_volume(image, cfg, voxel_mm=3.0, name="crop",
                                  meta={LABEL_THRESHOLDS_KEY: thresholds, MATERIALS_KEY: list(ra.MATERIALS)})
-    scene.labels = np.digitize(image, thresholds).astype(np.uint8)
+    scene.labels = threshold_labels(image, thresholds)
     return scene, hu, thresholds
 
 

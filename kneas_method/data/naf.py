@@ -299,6 +299,11 @@ def _attach_phantom(scene: Scene) -> None:
 LABEL_THRESHOLDS_KEY, MATERIALS_KEY = "label_thresholds", "materials"
 
 
+def threshold_labels(values, thresholds) -> np.ndarray:
+    """Labels (uint8, same shape as ``values``): how many of ``thresholds`` (ascending) each value reaches."""
+    return np.digitize(values, np.asarray(thresholds, dtype=np.float64)).astype(np.uint8)
+
+
 def threshold_membership(image: np.ndarray, thresholds, geometry):
     """``f(points_model [P, 3]) -> labels [P]``: how many of ``thresholds`` (ascending, data units) the
     trilinear interpolation of ``image`` [nx, ny, nz] exceeds at each point; at the voxel centres it
@@ -317,13 +322,12 @@ def threshold_membership(image: np.ndarray, thresholds, geometry):
         # where a voxel sits exactly on a threshold (integer HU against integer thresholds)
         nearest = np.round(coords)
         coords = np.where(np.abs(coords - nearest) < 1e-4, nearest, coords)
-        values = map_coordinates(image, coords, order=1, mode="nearest")
-        return np.digitize(values, levels).astype(np.uint8)
+        return threshold_labels(map_coordinates(image, coords, order=1, mode="nearest"), levels)
 
     return membership
 
 
-def _attach_threshold_labels(scene: Scene, label: str) -> None:
+def attach_threshold_labels(scene: Scene, label: str) -> None:
     """A scene (not built in) whose labels are thresholds of its volume: its material names and a
     membership function (:func:`threshold_membership`), so that surfaces can be scored on it."""
     thresholds, names = scene.meta.get(LABEL_THRESHOLDS_KEY), scene.meta.get(MATERIALS_KEY)
@@ -401,7 +405,7 @@ def scene_from_dict(d: Any, label: str, *, name: str = "scene", source: str = ""
     meta[GEOMETRY_MM_META] = geometry_mm
     scene = Scene(name=name, geometry=geometry, train=train, val=val, image=image, labels=labels, meta=meta, source=source)
     _attach_phantom(scene)
-    _attach_threshold_labels(scene, label)
+    attach_threshold_labels(scene, label)
     return scene
 
 
