@@ -183,6 +183,10 @@ class TrainConfig(RunConfig):
             procedure's: 0). Keeps a TV-flattened material from taking a spike component.
         bounds_gmm_restarts: k-means starts per GMM fit, the best kept (scikit-learn's ``n_init``;
             None = the procedure's: paper 1, refine-classical 3).
+        bounds_upper_percentile: the top bound ``b_K`` is ``bounds_upper_factor`` times this percentile of
+            the non-air values (None = the procedure's: paper 99.5, SPEC §4; 100 covers the volume's
+            whole range).
+        bounds_upper_factor: see ``bounds_upper_percentile`` (None = the procedure's: paper 1.15).
         reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
             preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
         reconstruction: settings of the classical start's reconstruction.
@@ -201,6 +205,8 @@ class TrainConfig(RunConfig):
     bounds_k_rule: Optional[BoundsKRule] = None
     bounds_min_std: Optional[float] = None
     bounds_gmm_restarts: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
+    bounds_upper_percentile: Optional[float] = field(default=None, metadata=at_least(0, at_most=100))
+    bounds_upper_factor: Optional[float] = field(default=None, metadata=at_least(0))
     reuse_prior: bool = True
     reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)
     model: ModelConfig = field(default_factory=ModelConfig)

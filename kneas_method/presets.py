@@ -247,7 +247,9 @@ def resolve(config: RunConfig) -> RunConfig:
     config = _select_stages(config, proc, surfaces)
     check_tree(config)
     for flag, value in (("--trainer.epochs", trainer.epochs), ("--bounds-max-materials", config.bounds_max_materials),
-                        ("--bounds-gmm-restarts", config.bounds_gmm_restarts)):
+                        ("--bounds-gmm-restarts", config.bounds_gmm_restarts),
+                        ("--bounds-upper-percentile", config.bounds_upper_percentile),
+                        ("--bounds-upper-factor", config.bounds_upper_factor)):
         if value is None:
             raise ConfigError(f"{flag} is not set, and procedure {proc.name!r} and preset {name!r} leave it unset too; give {flag}")
     if automatic_bounds(config) and config.stages.classical_start is None and trainer.prior_epochs is None:

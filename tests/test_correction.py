@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -371,6 +372,12 @@ def test_a_run_writes_its_correction_passes_into_the_model(tmp_path, capsys):
     assert [p["discretisation"] for p in passes] == ["computed", "reused"]  # --stages.correction.refresh 3
     assert all(p["residual_mean_square"][-1] < p["residual_mean_square"][0] for p in passes)
     assert record["seconds"] > 0 and "correction" in out.split("time per stage:")[1]
+    # each stage's volume scored against the truth; the last is the evaluation's volume but for what the fits moved
+    # outside where the volume is queried again (RunState.model_volume)
+    scores = metrics["stage_scores"]
+    assert [r["after"] for r in scores] == ["training", "correction"] and "score after correction: psnr3d" in out
+    assert math.isclose(scores[-1]["psnr3d"], metrics["psnr3d"], abs_tol=0.1), (scores, metrics["psnr3d"])
+    assert scores[-1]["psnr3d"] != scores[0]["psnr3d"]  # the passes moved the volume
     state, _, _ = load_latest_checkpoint(run_dir / "checkpoints", method="k-neas")
     assert state["extra"]["stages"]["correction"]["passes"] == passes and state["step"] == metrics["steps"]
     loaded = load_run(run_dir)  # the corrected model is the run's model: what kneas-eval scores
@@ -483,3 +490,23 @@ def test_gradient_magnitude_is_the_central_difference_slope_per_voxel():
     smooth = np.sin(0.3 * x) * np.cos(0.2 * y) + 0.1 * z
     naive = np.sqrt(sum(g ** 2 for g in np.gradient(smooth)))  # numpy's central differences, one-sided at the faces
     assert np.allclose(gradient_magnitude(torch.as_tensor(smooth)).numpy(), naive, atol=1e-9)
+
+
+def test_a_stage_volume_is_scored_only_against_a_truth_on_its_grid():
+    from types import SimpleNamespace
+
+    from kneas_method.stages.base import RunState
+
+    truth = np.random.default_rng(0).random((6, 5, 4)).astype(np.float32)
+    said = []
+    state = RunState(config=None, scene=SimpleNamespace(image=truth), run_dir=Path("."), device="cpu", started=0.0,
+                     loss_scale=1.0, say=said.append)
+    noisy = truth + 0.01
+    row = state.score("warm-start", noisy)
+    assert math.isclose(row["psnr3d"], psnr3d(noisy, truth), rel_tol=1e-9) and row["ssim3d"] < 1
+    state.score("warm-start", torch.as_tensor(truth))  # a resumed run scores a stage again: one row per stage
+    assert [r["after"] for r in state.records["scores"]] == ["warm-start"] and state.records["scores"][0]["ssim3d"] == 1.0
+    assert state.score("training", np.zeros((3, 3, 3))) is None  # another grid (a fitting box): not scored
+    assert RunState(config=None, scene=SimpleNamespace(image=None), run_dir=Path("."), device="cpu", started=0.0,
+                    loss_scale=1.0, say=said.append).score("training", truth) is None  # a scan without truth
+    assert len(said) == 2 and "psnr3d" in said[0]

@@ -4,6 +4,7 @@ stage can be left out end to end, and the config that says so reads back the sam
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from conftest import run, run_dir_of
@@ -163,3 +164,17 @@ def test_settings_of_a_stage_the_run_does_not_run_are_named(capsys):
     assert code == 0 and "note: --stages.correction.* settings are given, but this run does not run the correction stage" in out
     code, out, err = run(["k-neas", "--preset", "tiny", "--dry-run", "--add-stages", "correction", "--stages.correction.passes", "3"], capsys)
     assert code == 0 and "note:" not in out and "correction: up to 3 passes" in out
+
+
+def test_the_top_bound_follows_the_procedure_or_the_user():
+    from kneas_method.engine.bounds_stage import run_mixtures
+
+    base = registry.load("methods", "k-neas").config
+    cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
+    assert (cpu.bounds_upper_percentile, cpu.bounds_upper_factor) == (99.5, 1.15)  # SPEC §4's, as the paper's
+    whole = presets.resolve(dataclasses.replace(base, preset="cpu", bounds_upper_percentile=100.0, bounds_upper_factor=1.0))
+    values = np.r_[np.full(5000, 0.2), np.full(5000, 0.5), np.linspace(0.6, 1.0, 20)]  # a few dense voxels above the 99.5th
+    top_paper = run_mixtures(cpu, K=2).fit(values).boundaries_[-1]
+    top_whole = run_mixtures(whole, K=2).fit(values).boundaries_[-1]
+    assert top_paper == pytest.approx(1.15 * np.percentile(values[values > 0.05], 99.5), rel=1e-6) and top_paper < 0.6
+    assert top_whole == pytest.approx(1.0)  # the whole range: the densest voxel is inside the last material

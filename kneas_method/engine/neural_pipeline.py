@@ -124,6 +124,8 @@ class NeuralPipeline:
             for stage in (s for s in stages if s.config.phase == "start"):
                 where = f"during the {stage.name} stage"
                 stage.run(state)
+                if state.start is not None and not state.resumed:
+                    state.score(stage.name, state.start[0])
             where = "while the bounds were estimated"
             state.bounds = self.bounds(state)
             if state.bounds is not None:  # the K actually trained (and, from the peaks rule, where material 1's labels start)
@@ -138,9 +140,14 @@ class NeuralPipeline:
             for stage in (s for s in stages if s.config.phase == "before-training"):
                 where = f"during the {stage.name} stage"
                 stage.run(state)
+                if stage.name == "warm-start" and not state.resumed:
+                    state.score(stage.name)
+                    state.forget_volume()  # training moves the field everywhere
             say(f"model: {trainer.epochs} epochs x {trainer.steps_per_epoch} steps, {trainer.model.num_parameters():,} parameters")
             trainer.train(loss_terms=state.loss_terms, step_hooks=state.step_hooks)
             state.config = trainer.config  # the epochs it trained, where the budget shortened them (config.json says so too)
+            state.forget_volume()
+            state.score("training")
         except StageInterrupted as exc:
             return _interrupted(run_dir, f"[yellow]interrupted at step {exc.step}[/]: checkpoint {exc.checkpoint or 'no checkpoint (none written yet)'}")
         except KeyboardInterrupt:
@@ -151,6 +158,7 @@ class NeuralPipeline:
         for stage in (s for s in stages if s.config.phase == "after-training"):
             try:
                 stage.run(state)
+                state.score(stage.name)
             except KeyboardInterrupt:
                 return _interrupted(run_dir, f"[yellow]interrupted during the {stage.name} stage[/]; training is complete "
                                     f"(checkpoint {trainer.last_checkpoint})")

@@ -76,7 +76,7 @@ def neural_metrics(config, scene, trainer, bounds, evaluation, device, *, stages
     out.update(parameters=trainer.model.num_parameters(), steps=trainer.step, epochs=trainer.epochs, procedure=config.procedure,
                wall_time_s=trainer.wall_time_s + prior_time + bounds_time + stage_time + evaluation.seconds,
                train_time_s=trainer.wall_time_s, prior_time_s=prior_time, bounds_time_s=bounds_time,
-               stages=ran, loss_scale=float(trainer.model.loss_scale),
+               stages=ran, stage_scores=list(records.get("scores", [])), loss_scale=float(trainer.model.loss_scale),
                eval_time_s=evaluation.seconds, **facts, bad_steps=len(trainer.bad_steps))
     if trainer.model.has_surfaces:
         out["num_materials"] = int(trainer.model.num_materials)

@@ -134,6 +134,30 @@ class RunState:
         self.moved_region = None
         return self.volume
 
+    def score(self, after: str, volume=None) -> Optional[dict]:
+        """Score the volume ``after`` a stage left (``volume``, numpy or tensor; by default the model's as
+        :meth:`model_volume` holds it, queried again where a fit moved the field)
+        against the scene's true volume, when it has one on the same grid: psnr3d / ssim3d as the
+        evaluation scores them, printed and kept in ``records["scores"]`` (what each stage gained or
+        lost). None when the scene has no truth."""
+        import numpy as np
+
+        from ..evaluation.metrics import psnr3d, ssim3d
+
+        truth = getattr(self.scene, "image", None)
+        if truth is None:
+            return None
+        if volume is None:
+            volume = self.model_volume()
+        v = volume.detach().float().cpu().numpy() if hasattr(volume, "detach") else np.asarray(volume, dtype=np.float32)
+        if v.shape != tuple(np.shape(truth)):
+            return None
+        row = {"after": after, "psnr3d": psnr3d(v, truth), "ssim3d": ssim3d(v, truth)}
+        rows = [r for r in self.records.get("scores", []) if r.get("after") != after]  # a resumed run scores it again
+        self.records["scores"] = rows + [row]
+        self.say(f"score after {after}: psnr3d {row['psnr3d']:.2f} dB, ssim3d {row['ssim3d']:.4f} (against the scene's true volume)")
+        return row
+
     def moved(self, region) -> None:
         """A fit moved the field in ``region`` [nx, ny, nz] (bool): :meth:`model_volume` queries it again there."""
         self.moved_region = region if self.moved_region is None else (self.moved_region | region)
