@@ -205,8 +205,8 @@ class TrainConfig(RunConfig):
     bounds_k_rule: Optional[BoundsKRule] = None
     bounds_min_std: Optional[float] = None
     bounds_gmm_restarts: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
-    bounds_upper_percentile: Optional[float] = field(default=None, metadata=at_least(0, at_most=100))
-    bounds_upper_factor: Optional[float] = field(default=None, metadata=at_least(0))
+    bounds_upper_percentile: Optional[float] = field(default=None, metadata=at_least(0, strict=True, at_most=100))
+    bounds_upper_factor: Optional[float] = field(default=None, metadata=at_least(0, strict=True))
     reuse_prior: bool = True
     reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -124,7 +124,7 @@ class NeuralPipeline:
             for stage in (s for s in stages if s.config.phase == "start"):
                 where = f"during the {stage.name} stage"
                 stage.run(state)
-                if state.start is not None and not state.resumed:
+                if state.start is not None:
                     state.score(stage.name, state.start[0])
             where = "while the bounds were estimated"
             state.bounds = self.bounds(state)

@@ -94,6 +94,7 @@ class RunState:
             (a tensor on the device), so the next one need not query the whole grid again; None: query it.
         moved_region: where a fit moved the field since ``volume`` was queried (bool), or None.
         projectors: ``classical.projector.Projector`` per grid factor, shared by the stages that project.
+        scored_volume: the model volume :meth:`score` last scored (a stage that leaves it is not scored again).
     """
 
     config: Any
@@ -116,6 +117,7 @@ class RunState:
     volume: Any = None
     moved_region: Any = None
     projectors: dict = field(default_factory=dict)
+    scored_volume: Any = None
 
     def model_volume(self):
         """The model's volume ``[nx, ny, nz]`` (a tensor on the device): the one the last stage left,
@@ -148,11 +150,18 @@ class RunState:
         if truth is None:
             return None
         if volume is None:
-            volume = self.model_volume()
+            unchanged = self.volume is not None and self.moved_region is None and self.volume is self.scored_volume
+            volume = self.scored_volume = self.model_volume()
+            if unchanged and self.records.get("scores"):  # the stage left the volume as it was: the last figures hold
+                last = self.records["scores"][-1]
+                return self._keep_score({**last, "after": after})
         v = volume.detach().float().cpu().numpy() if hasattr(volume, "detach") else np.asarray(volume, dtype=np.float32)
         if v.shape != tuple(np.shape(truth)):
             return None
-        row = {"after": after, "psnr3d": psnr3d(v, truth), "ssim3d": ssim3d(v, truth)}
+        return self._keep_score({"after": after, "psnr3d": psnr3d(v, truth), "ssim3d": ssim3d(v, truth)})
+
+    def _keep_score(self, row: dict) -> dict:
+        after = row["after"]
         rows = [r for r in self.records.get("scores", []) if r.get("after") != after]  # a resumed run scores it again
         self.records["scores"] = rows + [row]
         self.say(f"score after {after}: psnr3d {row['psnr3d']:.2f} dB, ssim3d {row['ssim3d']:.4f} (against the scene's true volume)")
