@@ -34,6 +34,15 @@ k = int(opt("--num-materials")) if opt("--num-materials") else {"neas-1m": 1, "n
 if os.environ.get("FAKE_LOG"):
     with open(os.environ["FAKE_LOG"], "a") as f:
         f.write(json.dumps({"args": args, "cuda": os.environ.get("CUDA_VISIBLE_DEVICES"), "omp": os.environ.get("OMP_NUM_THREADS")}) + "\n")
+stop = os.environ.get("FAKE_STOP")  # "scene/method/k/seed": checkpoint, then the table is stopped (SIGTERM to kneas-bench)
+if stop and stop == f"{scene}/{method}/{k}/{seed}":
+    import signal, time
+    run = out / scene / method / "20240101-000009"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config.json").write_text("{}")
+    (run / "checkpoints" / "step-00000010.ckpt").write_bytes(b"x")
+    os.kill(os.getppid(), signal.SIGTERM)
+    time.sleep(60)
 fail = os.environ.get("FAKE_FAIL")
 if fail and fail == f"{scene}/{method}/{k}/{seed}":
     print("Traceback (most recent call last):\nRuntimeError: boom in " + fail, file=sys.stderr)
@@ -175,7 +184,7 @@ def test_paper_numbers_typed_in_exactly():
 
 
 def _write_metrics(out: Path, cell: Cell, values: dict, source: str, stamp: str = "20240101-000000") -> None:
-    run = cell_dir(out, cell) / cell.scene / cell.method / stamp
+    run = cell_dir(out, cell) / Path(cell.scene).stem / cell.method / stamp
     run.mkdir(parents=True)
     (run / "config.json").write_text(json.dumps({"method": cell.method, "scene": cell.scene, "views": cell.views, "seed": cell.seed,
                                                  "num_materials": cell.k}))
@@ -521,3 +530,127 @@ def test_view_counts_above_a_scenes_training_views_are_refused_before_any_cell(t
     assert training_view_count("jaw") == 4
     with pytest.raises(KneasError, match="--views 10 is more than scene jaw's 4 training views"):
         grid.views_table(["jaw"], (0,), "tiny", views=(5, 10))
+
+
+# ---------------------------------------------------------------------------- the results page
+
+
+def _page_lines(text: str, start: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith(start)]
+
+
+def test_results_page_from_fake_cells_has_the_papers_numbers_and_a_verdict_per_claim(tmp_path):
+    from kneas_method.bench import page
+
+    out = tmp_path / "bench"
+    knee = tmp_path / "knee.pickle"  # a scene of an anatomy the paper does not have (only its name is read here)
+    knee.write_bytes(b"")
+    knee = str(knee)
+    t1 = grid.table1(["abdomen", "jaw", knee], (0,), "cpu", ks=(1, 2, 3), references=("asd-pocs",))
+    psnr = {("abdomen", "neas-1m", 1): 30.0, ("abdomen", "neas-2m", 2): 31.0, ("abdomen", "k-neas", 1): 31.5,
+            ("abdomen", "k-neas", 2): 32.0, ("abdomen", "k-neas", 3): 33.0,  # K-NeAS above NeAS, best at K = 3: both hold
+            ("jaw", "neas-1m", 1): 30.0, ("jaw", "neas-2m", 2): 30.1, ("jaw", "k-neas", 2): 31.0,  # paper: K-NeAS below on jaw
+            (knee, "neas-1m", 1): 30.0, (knee, "k-neas", 2): 31.0}  # no knee in the paper
+    for c in t1:
+        if (c.scene, c.method, c.k) in psnr:
+            _write_metrics(out, c, _m(40.0, 0.9, psnr[(c.scene, c.method, c.k)], 0.8), f"built-in phantom {c.scene}")
+    page.add_to_manifest(out, "table1", t1)
+    views = grid.views_table(["chest"], (0, 1), "cpu", views=(5, 50), references=("fdk", "asd-pocs"))
+    vals = {("neas-2m", 5): [20.0, 20.2], ("k-neas", 5): [22.0, 22.2], ("neas-2m", 50): [30.0, 31.0],
+            ("k-neas", 50): [30.2, 30.8],  # 0.0 apart, std 0.57: within one std, not comparable
+            ("asd-pocs", 5): [23.0], ("fdk", 5): [15.0], ("asd-pocs", 50): [29.0]}
+    for c in views:
+        v = vals.get((c.method, c.views))
+        if v and c.seed < len(v):
+            _write_metrics(out, c, _m(40.0, 0.9, v[c.seed], 0.7 if c.method == "asd-pocs" else 0.8), "built-in phantom chest")
+    page.add_to_manifest(out, "views", views)
+    path = page.write_page(out, tmp_path / "docs" / "paper_tables.md")
+    text = path.read_text()
+    assert "do not edit by hand" in text and "## Table 3: component ablation" in text
+    assert "Not run here yet: `kneas-bench ablation" in text  # no ablation manifest
+    # ours in the paper's layout, the paper's published tables beside
+    assert "### Ours: Table 1" in text and "| Abdomen | 3M | — | 33.276 |" in text
+    assert "| 5 | 20.596 | 21.767 |" in text and "| K-NeAS | 31.630 |" not in text  # Table 3 printed only when run
+    assert f"{sum(1 for c in t1 if (c.scene, c.method, c.k) in psnr)} of {len(t1)} cells complete" in text
+    claims = _page_lines(text, "- **")
+    def verdict(scene, words):
+        (line,) = [x for x in claims if f"on {Path(scene).name}:" in x and words in x]
+        return line.split("**")[1]
+    assert verdict("abdomen", "Abdomen: K-NeAS above NeAS") == "holds"
+    assert verdict("abdomen", "best at K = 3") == "holds"
+    assert verdict("jaw", "Jaw: K-NeAS below NeAS") == "does not hold"
+    assert "K-NeAS 2M − NeAS 2M = +0.90 dB" in next(x for x in claims if "on jaw:" in x)
+    assert verdict(knee, "K-NeAS against NeAS") == "not comparable"
+    assert verdict("chest", "5 views: K-NeAS above NeAS") == "holds"
+    assert verdict("chest", "50 views: K-NeAS below NeAS") == "not comparable"
+    assert "within one standard deviation" in next(x for x in claims if "50 views: K-NeAS below" in x)
+    # the classical bar: ASD-POCS's 23.1 dB at 5 views is above K-NeAS's 22.1; at 50 K-NeAS's 30.5 is above 29.0 but its SSIM is not
+    assert verdict("chest", "5 views: K-NeAS at or above the best classical") == "does not hold"
+    assert "3D PSNR 22.100 vs 23.000 (asd-pocs" in next(x for x in claims if "5 views: K-NeAS at or above" in x)
+    assert verdict("chest", "50 views: K-NeAS at or above the best classical") == "holds"
+    assert text.count("- **") == len(claims) and f"Verdicts: {sum('holds**' in x for x in claims)} holds" in text
+
+
+def test_results_page_says_failed_cells_and_one_seed_ties_are_not_comparable(tmp_path):
+    from kneas_method.bench import page
+
+    out = tmp_path / "bench"
+    cells = grid.ablation(["foot"], (0,), "cpu", references=())
+    psnr = {"kselector": 31.0, "kselector-floater": 31.1, "k-neas": 32.0}  # kselector-shared failed
+    for c in cells:
+        if c.method in psnr:
+            _write_metrics(out, c, _m(40.0, 0.9, psnr[c.method], 0.8), "built-in phantom foot")
+        else:
+            cell_dir(out, c).mkdir(parents=True)
+            (cell_dir(out, c) / "cell.json").write_text(json.dumps({"status": "failed", "error": "boom"}))
+    page.write_manifest(out, "ablation", cells)
+    claims = _page_lines(page.render(out), "- **")
+    assert len(claims) == 4
+    floater = next(x for x in claims if x.startswith("- **") and "K-Selector + Floater Reg above K-Selector " in x)
+    assert floater.startswith("- **not comparable**") and "rerun with --seeds 3" in floater
+    shared = [x for x in claims if "Shared Body" in x]
+    assert all(x.startswith("- **not comparable**") and "failed" in x for x in shared)
+    full = next(x for x in claims if "K-NeAS above K-Selector + Floater Reg" in x)
+    assert full.startswith("- **holds**") and "(one seed)" in full
+
+
+def test_a_table_stopped_mid_cell_resumes_and_the_page_counts_every_cell(tmp_path, fake_prefix):
+    import subprocess
+
+    out, log = tmp_path / "bench", tmp_path / "calls.jsonl"
+    code = ("import sys; from kneas_method.cli import bench; bench.TRAIN_PREFIX = tuple(sys.argv[1:3]); "
+            "bench.main(sys.argv[3:])")
+    argv = [sys.executable, "-c", code, *fake_prefix, "views", "--preset", "tiny", "--seeds", "1", "--views", "5", "10",
+            "--references", "asd-pocs", "--output-dir", str(out)]
+    env = {**os.environ, "FAKE_LOG": str(log), "FAKE_STOP": "chest/k-neas/2/0"}
+    first = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=120)
+    assert first.returncode != 0 and "interrupted" in first.stderr
+    stopped = [c for c in _calls(log) if c["args"][0] == "k-neas"]
+    assert len(stopped) == 1 and stopped[0]["args"][stopped[0]["args"].index("--views") + 1] == "5"
+    assert (out / "views.cells.json").is_file()  # the manifest is written before any cell runs
+    done_before = len(_calls(log))
+    env.pop("FAKE_STOP")
+    second = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=120)
+    assert second.returncode == 0, second.stderr
+    again = _calls(log)[done_before:]
+    assert again[0]["args"][0] == "--resume" and again[0]["args"][1].endswith("20240101-000009")
+    assert [c["args"][0] for c in again[1:]].count("k-neas") == 1  # the 10-view cell, once
+    assert sum(1 for c in _calls(log) if c["args"][0] == "neas-2m") == 2  # 5 views before the stop, 10 after; none twice
+    page_run = subprocess.run([sys.executable, "-c", "from kneas_method.cli.bench import main; main()", "page", "--output-dir",
+                               str(out), "--write", str(tmp_path / "page.md")], capture_output=True, text=True, timeout=120)
+    assert page_run.returncode == 0, page_run.stderr
+    assert "6 of 6 cells complete" in (tmp_path / "page.md").read_text()
+
+
+def test_page_without_a_table_is_a_one_line_error(tmp_path, capsys):
+    from kneas_method.cli import bench as cli
+
+    (tmp_path / "empty").mkdir()
+    for folder in (tmp_path / "missing", tmp_path / "empty"):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["page", "--output-dir", str(folder), "--write", str(tmp_path / "p.md")])
+        assert exc.value.code != 0
+        err = capsys.readouterr().err
+        assert "run a table first" in err or "no table has run" in err
+        assert "Traceback" not in err
+    assert not (tmp_path / "p.md").exists()

@@ -8,6 +8,7 @@ workers, Ray), skips complete cells, and aggregates the tables.
 - :mod:`.aggregate`: mean ± std over seeds, the paper's layouts, Markdown + CSV.
 - :mod:`.paper_results`: the paper's published numbers.
 - :mod:`.estimate`: dry-run cost estimates.
+- :mod:`.page`: the results page (``kneas-bench page``): the tables run, the paper's beside, a verdict per claim.
 """
 
 from .grid import Cell

@@ -1,4 +1,4 @@
-"""`kneas-bench table1|views|ablation|grid`: run the paper's experiments and write its tables.
+"""`kneas-bench table1|views|ablation|grid|page`: run the paper's experiments, write its tables and the results page.
 
 Each cell of a grid (scene x method x K x views x seed) is an ordinary
 ``kneas-train`` run in ``OUTPUT_DIR/cells/<cell id>/``; cells that already have
@@ -18,6 +18,7 @@ Examples::
     kneas-bench grid --scenes foot --methods k-neas naf --num-materials 2 3 --views 10 50 --seeds 2
     kneas-bench table1 --references fdk sart                      # only these classical reference rows
     kneas-bench table1 --references                               # no classical reference rows
+    kneas-bench page --output-dir outputs/bench                   # docs/paper_tables.md: every table run there, verdicts
 """
 
 from __future__ import annotations
@@ -113,14 +114,24 @@ class Grid(_Common):
     """training view counts (empty: all views)"""
 
 
+@dataclass
+class Page:
+    """The results page: every table run in OUTPUT_DIR, the paper's numbers beside, a verdict per claim."""
+
+    output_dir: str = "outputs/bench"
+    """the folder the tables ran in (kneas-bench table1|views|ablation --output-dir)"""
+    write: str = "docs/paper_tables.md"
+    """where the page goes (Markdown)"""
+
+
 # How a cell starts kneas-train (tests replace it with a stand-in trainer).
 TRAIN_PREFIX: tuple[str, ...] = ()  # () = kneas_method.bench.grid.DEFAULT_TRAIN_PREFIX
 
-SUBCOMMANDS = {"table1": Table1(), "views": Views(), "ablation": Ablation(), "grid": Grid()}
+SUBCOMMANDS = {"table1": Table1(), "views": Views(), "ablation": Ablation(), "grid": Grid(), "page": Page()}
 LAYOUT = {Table1: "table1", Views: "views", Ablation: "ablation", Grid: "grid"}
 
 
-def parse_args(argv: Sequence[str]) -> _Common:
+def parse_args(argv: Sequence[str]) -> "_Common | Page":
     from .common import tyro_cli
 
     descriptions = {k: (type(v).__doc__ or "").strip() for k, v in SUBCOMMANDS.items()}
@@ -192,7 +203,7 @@ def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
 
 
 def run(args: _Common) -> int:
-    from ..bench import aggregate, backends
+    from ..bench import aggregate, backends, page
     from ..bench.cells import is_complete
     from ..engine.run_dir import check_writable
 
@@ -204,6 +215,8 @@ def run(args: _Common) -> int:
     if args.dry_run:
         return dry_run(args, cells, output_dir)
     check_writable(output_dir)
+    if layout in page.LAYOUTS:  # before any cell runs, so the page counts an interrupted table's cells too
+        page.add_to_manifest(output_dir, layout, cells)
     if args.backend == "local" and (args.address or args.cpus_per_cell != 1):
         raise ConfigError("--address and --cpus-per-cell are for the ray backend; add --backend ray")
     if args.backend == "ray" and args.workers != 1:
@@ -242,9 +255,27 @@ def run(args: _Common) -> int:
     console.print(Path(paths[0]).read_text(encoding="utf-8"), markup=False, highlight=False)
     console.print(f"{counts['done']} cells run, {counts['failed']} failed, {len(cells) - len(todo)} skipped as complete, "
                   f"in {time.monotonic() - t0:.0f} s; tables: {', '.join(str(p) for p in paths)}")
+    if layout in page.LAYOUTS:
+        console.print(f"the results page with the paper's numbers and a verdict per claim: kneas-bench page --output-dir {output_dir}")
     if counts["failed"]:
         console.print(f"rerun the same command to retry the failed cells (their errors are in {output_dir}/cells/<cell id>/cell.json)")
         return 1
+    return 0
+
+
+def write_page(args: Page) -> int:
+    from ..bench import page
+    from ..engine.run_dir import check_writable
+
+    output_dir = Path(args.output_dir)
+    if not output_dir.is_dir():
+        raise ConfigError(f"{output_dir} does not exist; run a table first (kneas-bench table1|views|ablation --output-dir {output_dir})")
+    if not any(page.manifest_path(output_dir, layout).is_file() for layout in page.LAYOUTS):
+        raise ConfigError(f"no table has run in {output_dir} (no {', '.join(l + page.MANIFEST_SUFFIX for l in page.LAYOUTS)}); "
+                          "run kneas-bench table1|views|ablation --output-dir DIR first, or pass that DIR")
+    check_writable(Path(args.write).parent, needed_bytes=0)
+    path = page.write_page(output_dir, args.write, command=f"kneas-bench page --output-dir {args.output_dir} --write {args.write}")
+    console.print(f"results page: {path}")
     return 0
 
 
@@ -255,7 +286,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         from ..bench.backends import _sigterm_as_interrupt
 
         _sigterm_as_interrupt()
-        return run(parse_args(sys.argv[1:] if argv is None else argv))
+        args = parse_args(sys.argv[1:] if argv is None else argv)
+        return write_page(args) if isinstance(args, Page) else run(args)
 
     run_cli(body)
 
