@@ -142,12 +142,16 @@ class ClassicalConfig(RunConfig):
     Attributes:
         algorithm: the classical method.
         reconstruction: its settings.
+        trace: score the volume after every iteration against the scene's true volume (a scene with
+            one), and record in ``metrics.json`` (``trace``) the psnr3d of each count and the best count
+            with its psnr3d and ssim3d: the oracle count no user can pick from the projections alone.
     """
 
     _target = "kneas_method.engine.classical_pipeline:ClassicalPipeline"
     method: str = "fdk"
     algorithm: Algorithm = "fdk"
     reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)
+    trace: bool = False
 
 
 @dataclass

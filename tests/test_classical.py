@@ -408,3 +408,24 @@ def test_volume_material_metrics_of_the_exact_label_volume_are_perfect():
     assert peaks["K"] == 3 and peaks["gmm"]["k_rule_used"] == "peaks" and peaks["dice_mean"] == pytest.approx(1.0)
     noisy = exact + np.random.default_rng(0).normal(0, 0.08, exact.shape).astype(np.float32)
     assert volume_material_metrics(noisy, scene, surfaces=False)["dice_mean"] < 0.99
+
+
+def test_trace_scores_every_count_and_keeps_the_best(tmp_path, capsys):
+    """``--trace``: the psnr3d of every count is that of a run stopped there; the best count's figures are recorded."""
+    from conftest import run, run_dir_of, simulated_foot
+
+    scene = simulated_foot(tmp_path, "smallfoot", 16, 15.0, n_train=8)
+    code, out, err = run(["sart", "--scene", str(scene), "--output-dir", str(tmp_path / "o"), "--reconstruction.iterations", "4",
+                          "--trace"], capsys)
+    assert code == 0, err
+    trace = json.loads((run_dir_of(out) / "metrics.json").read_text())["trace"]
+    assert len(trace["psnr3d"]) == 4
+    best = trace["best"]
+    assert f"best count {best['iterations']} of 4" in out
+    assert best["psnr3d"] == max(trace["psnr3d"]) and trace["psnr3d"][best["iterations"] - 1] == best["psnr3d"]
+    code, out, err = run(["sart", "--scene", str(scene), "--output-dir", str(tmp_path / "o"),
+                          "--reconstruction.iterations", str(best["iterations"])], capsys)
+    short = json.loads((run_dir_of(out) / "metrics.json").read_text())
+    assert short["psnr3d"] == pytest.approx(best["psnr3d"], abs=1e-3) and short["ssim3d"] == pytest.approx(best["ssim3d"], abs=1e-3)
+    code, out, err = run(["fdk", "--scene", str(scene), "--output-dir", str(tmp_path / "o"), "--trace"], capsys)
+    assert code == 2 and "fdk has no iterations" in err and len(err.strip().splitlines()) == 1

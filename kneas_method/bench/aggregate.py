@@ -38,7 +38,7 @@ from typing import Any, Optional, Sequence
 from ..engine.run_dir import read_json
 from . import paper_results as paper
 from .cells import cell_dir, find_metrics, read_cell_record
-from .grid import REFERENCE_METHODS, Cell, is_reference
+from .grid import ORACLE_ITERATIONS, ORACLE_SUFFIX, REFERENCE_METHODS, Cell, is_reference
 
 METRICS = paper.METRICS  # shown in the tables
 CSV_EXTRA_METRICS = ("psnr3d_ls",)  # also in the CSV files
@@ -96,6 +96,8 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
                 g.errors.append(str(rec.get("error") or "")[:200])
             continue
         data = read_json(m, "metrics file")
+        if cell.oracle:  # the best count's 3D figures; the 2D ones are of the last count's volume, not shown
+            data = {**(data.get("trace") or {}).get("best", {}), "scene_source": data.get("scene_source")}
         for metric in (*METRICS, *CSV_EXTRA_METRICS):
             x = _float(data.get(metric))
             if x is not None:
@@ -268,14 +270,18 @@ def _source_note(groups: dict[tuple, Group], scenes: Sequence[str], with_paper: 
 
 
 def reference_label(method: str) -> str:
-    """Display name of a classical reference row: ``fdk`` -> "FDK (ref.)", ``os-sart`` -> "OS-SART (ref.)"."""
+    """Display name of a classical reference row: ``fdk`` -> "FDK (ref.)", ``os-sart`` -> "OS-SART (ref.)",
+    ``asd-pocs@best`` -> "ASD-POCS best of 1-40 (oracle)"."""
+    if method.endswith(ORACLE_SUFFIX):
+        return f"{method[:-len(ORACLE_SUFFIX)].upper()} best of 1-{ORACLE_ITERATIONS} (oracle)"
     return f"{method.upper()} (ref.)"
 
 
 def _references(cells: Sequence[Cell]) -> list[str]:
-    """The classical reference methods among ``cells``, in :data:`REFERENCE_METHODS` order."""
-    present = {c.method for c in cells}
-    return [m for m in REFERENCE_METHODS if m in present]
+    """The classical reference rows among ``cells``: the methods in :data:`REFERENCE_METHODS` order, then
+    their oracles (``asd-pocs@best``)."""
+    present = {c.group[1] for c in cells}
+    return [m for m in REFERENCE_METHODS if m in present] + [m + ORACLE_SUFFIX for m in REFERENCE_METHODS if m + ORACLE_SUFFIX in present]
 
 
 def _common_notes(cells: Sequence[Cell]) -> list[str]:
@@ -284,14 +290,19 @@ def _common_notes(cells: Sequence[Cell]) -> list[str]:
     spread = (f"mean ± sample std over seeds {', '.join(map(str, seeds))}" if len(seeds) > 1
               else f"one seed ({seeds[0]}): no spread" if seeds else "classical references only")
     note = f"{spread}; preset {', '.join(presets)}; bold = best of our learned models"
-    refs = _references(cells)
+    refs = [m for m in _references(cells) if not m.endswith(ORACLE_SUFFIX)]
+    oracles = [m[:-len(ORACLE_SUFFIX)] for m in _references(cells) if m.endswith(ORACLE_SUFFIX)]
+    if refs or oracles:
+        note += " (classical references excluded)"
     if refs:
         labels = ", ".join(m.upper() for m in refs)
-        note += (f" (classical references excluded); (ref.) rows = classical references {labels} (one deterministic run each; "
-                 "their values are in the first column of each metric).")
-    else:
-        note += "."
-    return [note]
+        note += (f"; (ref.) rows = classical references {labels} (one deterministic run each, at the count a user gets by default; "
+                 "their values are in the first column of each metric)")
+    if oracles:
+        note += (f"; (oracle) rows = {', '.join(m.upper() for m in oracles)} run {ORACLE_ITERATIONS} iterations with every count "
+                 "scored against the truth, the best count's 3D figures (no user can pick it from the projections; the 2D "
+                 "columns stay empty)")
+    return [note + "."]
 
 
 def table1(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:

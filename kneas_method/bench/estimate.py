@@ -44,7 +44,7 @@ from typing import Optional, Sequence
 
 from .. import presets
 from .cells import cell_dir, find_metrics
-from .grid import REFERENCE_METHODS, Cell, is_reference
+from .grid import ORACLE_ITERATIONS, REFERENCE_METHODS, Cell, is_reference
 
 DEFAULT_VIEWS = 50
 
@@ -118,9 +118,12 @@ def training_steps(cell: Cell, preset: str) -> int:
 
 
 def classical_iterations(cell: Cell) -> int:
-    """Iterations of a classical reference cell: ``--reconstruction.iterations`` or the algorithm's default (fdk: 1)."""
+    """Iterations of a classical reference cell: an oracle's :data:`~.grid.ORACLE_ITERATIONS`, else
+    ``--reconstruction.iterations`` or the algorithm's default (fdk: 1)."""
     if cell.method == "fdk":
         return 1
+    if cell.oracle:
+        return ORACLE_ITERATIONS
     from ..classical.reconstruct import DEFAULT_ITERATIONS
 
     given = _extra_int(cell.extra, "--reconstruction.iterations")

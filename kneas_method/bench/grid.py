@@ -23,6 +23,11 @@ scene (and per view count) for each classical reference method
 deterministic, so each runs once (seed 0), without ``--num-materials``, as a
 classical reference row. In ``grid`` they are ordinary methods that run once
 (``kneas-bench grid`` adds its ``--references`` to ``--methods``).
+
+The table grids also have, per scene and view count, one *oracle* cell for each method of
+``oracles`` (``kneas-bench --oracles``, default :data:`ORACLE_METHODS`): the method run for
+:data:`ORACLE_ITERATIONS` iterations with every count scored against the scene's truth
+(``kneas-train --trace``); its row holds the best count's 3D figures, the bar no user can pick.
 """
 
 from __future__ import annotations
@@ -47,6 +52,11 @@ TABLE1_K = (1, 2, 3, 4)
 VIEWS = (5, 10, 20, 50)
 ABLATION_METHODS = ("kselector", "kselector-floater", "kselector-shared", "k-neas")
 DEFAULT_TRAIN_PREFIX = (sys.executable, "-c", "from kneas_method.cli.train import main; main()")
+# The oracle rows: these classical methods run this many iterations, every count scored against the
+# truth (kneas-train --trace); the row is the best count, which no user can pick from projections alone.
+ORACLE_METHODS: tuple[str, ...] = ("sart", "asd-pocs")
+ORACLE_ITERATIONS = 40
+ORACLE_SUFFIX = "@best"  # an oracle cell's method in its group key: "asd-pocs@best"
 
 
 def _slug(text: str) -> str:
@@ -74,6 +84,8 @@ class Cell:
         seed: training seed.
         preset: kneas-train preset (``tiny``, ``cpu``, ``paper``, ``auto``).
         extra: extra ``kneas-train`` arguments, passed through verbatim.
+        oracle: a classical reference run for :data:`ORACLE_ITERATIONS` iterations with every count
+            scored (``--trace``); its row is the best count's volume.
     """
 
     scene: str
@@ -83,6 +95,7 @@ class Cell:
     seed: int
     preset: str
     extra: tuple[str, ...] = field(default=())
+    oracle: bool = False
 
     @property
     def id(self) -> str:
@@ -91,12 +104,14 @@ class Cell:
                  f"v{self.views}" if self.views is not None else "vall", f"s{self.seed}", _slug(self.preset)]
         if self.extra:
             parts.append("x" + hashlib.sha1("\0".join(self.extra).encode()).hexdigest()[:8])
+        if self.oracle:
+            parts.append(f"best{ORACLE_ITERATIONS}")
         return "__".join(parts)
 
     @property
     def group(self) -> tuple:
-        """The cell without its seed: the key that seeds are averaged over."""
-        return (self.scene, self.method, self.k, self.views)
+        """The cell without its seed: the key that seeds are averaged over (an oracle's method ends in ``@best``)."""
+        return (self.scene, self.method + (ORACLE_SUFFIX if self.oracle else ""), self.k, self.views)
 
     def train_args(self, output_dir: str | Path) -> list[str]:
         """``kneas-train`` arguments (after the program) for this cell."""
@@ -106,6 +121,8 @@ class Cell:
         if self.views is not None:
             args += ["--views", str(self.views)]
         args += ["--seed", str(self.seed), "--preset", self.preset, "--output-dir", str(output_dir)]
+        if self.oracle:
+            args += ["--reconstruction.iterations", str(ORACLE_ITERATIONS), "--trace"]
         return args + list(self.extra)
 
     def command(self, output_dir: str | Path, prefix: Sequence[str] = DEFAULT_TRAIN_PREFIX) -> list[str]:
@@ -153,8 +170,18 @@ def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[i
 
 
 def is_reference(method: str) -> bool:
-    """True for a classical reference method (:data:`REFERENCE_METHODS`)."""
-    return method in REFERENCE_METHODS
+    """True for a classical reference method (:data:`REFERENCE_METHODS`), or its oracle's group name (``asd-pocs@best``)."""
+    return method.split(ORACLE_SUFFIX)[0] in REFERENCE_METHODS
+
+
+def check_oracles(oracles: Iterable[str]) -> tuple[str, ...]:
+    """The chosen oracle methods, each once; FDK (no iterations) and unknown names are an error."""
+    oracles = tuple(dict.fromkeys(oracles))
+    bad = [m for m in oracles if m == "fdk" or not is_reference(m)]
+    if bad:
+        raise ConfigError(f"--oracles takes iterative classical methods ({', '.join(m for m in REFERENCE_METHODS if m != 'fdk')}), "
+                          f"not {', '.join(bad)}")
+    return oracles
 
 
 def check_references(references: Iterable[str]) -> tuple[str, ...]:
@@ -168,10 +195,18 @@ def check_references(references: Iterable[str]) -> tuple[str, ...]:
 
 
 def _reference_cells(scenes: Iterable[str], views: Iterable[Optional[int]], references: Sequence[str], preset: str,
-                     extra: tuple[str, ...]) -> list[Cell]:
-    """One cell per scene, view count and reference method, seed 0 (deterministic), no materials."""
-    references = check_references(references)
-    return [Cell(s, m, None, v, 0, preset, extra) for s in scenes for v in views for m in references]
+                     extra: tuple[str, ...], oracles: Sequence[str] = ()) -> list[Cell]:
+    """One cell per scene, view count and reference method, seed 0 (deterministic), no materials; then one
+    oracle cell per scene, view count and method of ``oracles``."""
+    references, oracles = check_references(references), check_oracles(oracles)
+    return ([Cell(s, m, None, v, 0, preset, extra) for s in scenes for v in views for m in references]
+            + [Cell(s, m, None, v, 0, preset, extra, oracle=True) for s in scenes for v in views for m in oracles])
+
+
+def oracle_cells(scenes: Iterable[str], views: Iterable[Optional[int]], oracles: Sequence[str], preset: str,
+                 extra: Sequence[str] = ()) -> list[Cell]:
+    """One oracle cell per scene, view count and method of ``oracles`` (:class:`Cell` ``oracle``)."""
+    return _reference_cells(scenes, views, (), preset, tuple(extra), oracles)
 
 
 def _dedupe(cells: Iterable[Cell]) -> list[Cell]:
@@ -185,7 +220,7 @@ def _dedupe(cells: Iterable[Cell]) -> list[Cell]:
 
 def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
            ks: Sequence[int] = TABLE1_K, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
-           extra: Sequence[str] = ()) -> list[Cell]:
+           extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
     """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``),
     plus one cell per classical reference in ``references`` (empty: none)."""
     _check_common(scenes, preset, [views])
@@ -199,30 +234,30 @@ def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: S
                 if k in (1, 2):
                     cells.append(Cell(s, f"neas-{k}m", k, views, seed, preset, extra))
                 cells.append(Cell(s, "k-neas", k, views, seed, preset, extra))
-    cells += _reference_cells(scenes, [views], references, preset, extra)
+    cells += _reference_cells(scenes, [views], references, preset, extra, oracles)
     return _dedupe(cells)
 
 
 def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
                 views: Sequence[int] = VIEWS, k: int = 2, references: Sequence[str] = REFERENCE_METHODS,
-                extra: Sequence[str] = ()) -> list[Cell]:
+                extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
     """Table 2: views x {neas-2m, k-neas with K = 2} per scene, plus each classical reference per scene and view count."""
     _check_common(scenes, preset, views)
     extra = tuple(extra)
     cells = [Cell(s, m, k, v, seed, preset, extra) for s in scenes for v in views for m in ("neas-2m", "k-neas") for seed in seeds]
-    cells += _reference_cells(scenes, views, references, preset, extra)
+    cells += _reference_cells(scenes, views, references, preset, extra, oracles)
     return _dedupe(cells)
 
 
 def ablation(scenes: Sequence[str] = ("foot",), seeds: Sequence[int] = (0,), preset: str = "auto", k: int = 2,
              methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
-             extra: Sequence[str] = ()) -> list[Cell]:
+             extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
     """Table 3: the four-way ablation with K = 2, plus one cell per classical reference and scene."""
     _check_common(scenes, preset, [views])
     extra = tuple(extra)
     # a classical method among ``methods`` is a reference (one run, no K), not an ablation variant
     cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods if not is_reference(m) for seed in seeds]
-    cells += _reference_cells(scenes, [views], [*references, *filter(is_reference, methods)], preset, extra)
+    cells += _reference_cells(scenes, [views], [*references, *filter(is_reference, methods)], preset, extra, oracles)
     return _dedupe(cells)
 
 

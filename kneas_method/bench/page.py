@@ -67,8 +67,8 @@ def read_manifest(output_dir: str | Path, layout: str) -> Optional[list[Cell]]:
     if not path.is_file():
         return None
     data = read_json(path, "table manifest")
-    return [Cell(d["scene"], d["method"], d.get("k"), d.get("views"), int(d["seed"]), d["preset"], tuple(d.get("extra") or ()))
-            for d in data.get("cells", [])]
+    return [Cell(d["scene"], d["method"], d.get("k"), d.get("views"), int(d["seed"]), d["preset"], tuple(d.get("extra") or ()),
+                 bool(d.get("oracle", False))) for d in data.get("cells", [])]
 
 
 # ---------------------------------------------------------------------------- scenes and rows
@@ -208,7 +208,7 @@ def views_verdicts(cells: Sequence[Cell], groups: dict[tuple, Group]) -> list[Ve
                 status, why = compare(groups, kn, ne, f"K-NeAS {k}M", "NeAS 2M", pd, pd > 0)
                 out.append(Verdict(claim, s, status, why))
             refs = [key for key in groups if key[0] == s and key[3] == v and is_reference(key[1]) and _mean(groups[key]) is not None]
-            claim = f"{v} views: K-NeAS at or above the best classical reference (3D PSNR and 3D SSIM)"
+            claim = f"{v} views: K-NeAS at or above the best classical row, oracle included (3D PSNR and 3D SSIM)"
             if _mean(groups.get(kn)) is None or not refs:
                 out.append(Verdict(claim, s, NOT_COMPARABLE, _missing(groups, [kn], [f"K-NeAS {k}M"]) or "no classical reference run"))
                 continue
@@ -221,7 +221,7 @@ def views_verdicts(cells: Sequence[Cell], groups: dict[tuple, Group]) -> list[Ve
                     ok = False
                     continue
                 ok = ok and ours >= theirs
-                parts.append(f"{label} {ours:.3f} vs {theirs:.3f} ({best[1]}, {ours - theirs:+.3f}{unit})")
+                parts.append(f"{label} {ours:.3f} vs {theirs:.3f} ({aggregate.reference_label(best[1])}, {ours - theirs:+.3f}{unit})")
             out.append(Verdict(claim, s, HOLDS if ok else FAILS, "; ".join(parts)))
     return out
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional, Sequence
 
-from ..bench.grid import REFERENCE_METHODS
+from ..bench.grid import ORACLE_ITERATIONS, ORACLE_METHODS, REFERENCE_METHODS
 from ..classical.options import Algorithm
 from ..errors import ConfigError
 from .common import console, run_cli
@@ -58,6 +58,8 @@ class _Common:
     """list the cells with an estimated cost each; run nothing"""
     references: tuple[Algorithm, ...] = REFERENCE_METHODS
     """classical reference methods to add: one deterministic run (seed 0) each per scene and view count, a '(ref.)' row that is never bold; --references with no name adds none"""
+    oracles: tuple[Algorithm, ...] = ORACLE_METHODS
+    """classical methods that also get an oracle row: one run of 40 iterations per scene and view count, every count scored against the truth, the best one shown ('best of 1-40 (oracle)'); --oracles with no name adds none"""
     train_args: str = ""
     """extra kneas-train arguments for every cell, as one string with =: --train-args="--trainer.epochs 5" """
 
@@ -152,21 +154,22 @@ def expand(args: _Common) -> list:
         if any(a == bad or a.startswith(bad + "=") for a in extra):
             raise ConfigError(f"--train-args must not contain {bad}: kneas-bench sets it per cell; use the kneas-bench option instead")
     if isinstance(args, Table1):
-        cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.references, extra)
+        cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.references, extra, args.oracles)
     elif isinstance(args, Views):
-        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra)
+        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra, args.oracles)
     elif isinstance(args, Ablation):
-        cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.references, extra)
+        cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.references, extra, args.oracles)
     else:
         references = grid.check_references(args.references)
         methods = list(args.methods) + ([m for m in references if m not in args.methods] if args.methods else [])
         cells = grid.grid(args.scenes, methods, args.num_materials or (None,), args.views or (None,), seeds, args.preset, extra)
+        cells += grid.oracle_cells(args.scenes, args.views or (None,), args.oracles, args.preset, extra)
     grid.check_methods({c.method for c in cells})
     return cells
 
 
 def _labels(c) -> list[str]:
-    return [c.scene, c.method, "-" if c.k is None else str(c.k), "all" if c.views is None else str(c.views), str(c.seed)]
+    return [c.scene, c.method + (f" (best of 1-{ORACLE_ITERATIONS})" if c.oracle else ""), "-" if c.k is None else str(c.k), "all" if c.views is None else str(c.views), str(c.seed)]
 
 
 def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
