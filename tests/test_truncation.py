@@ -207,6 +207,12 @@ def test_a_start_for_an_object_wider_than_the_view_runs_further_unless_a_count_i
     given = ReconstructionOptions(iterations=7)
     assert start_options("asd-pocs", given, True) is given  # the user's count wins
     assert start_options("sart", default, True) is default and start_options("fdk", default, True) is default
+    # few views: the default count's single-view updates on 50 views (asd-pocs 10 x 50, sart 5 x 50), never fewer
+    assert start_options("asd-pocs", default, False, 5).iterations == 100
+    assert start_options("asd-pocs", default, False, 20).iterations == 25 and start_options("sart", default, False, 10).iterations == 25
+    assert start_options("asd-pocs", default, False, 50) is default and start_options("asd-pocs", default, False, 360) is default
+    assert start_options("asd-pocs", default, True, 5).iterations == 100 and start_options("asd-pocs", default, True, 25).iterations == 40
+    assert start_options("asd-pocs", given, False, 5) is given and start_options("cgls", default, False, 5) is default
 
 
 def test_a_cached_start_with_another_iteration_count_is_computed_again(tmp_path):
@@ -224,10 +230,10 @@ def test_a_neural_runs_start_is_run_further_where_the_object_is_wider_than_the_v
     from kneas_method.stages import RunState
     from kneas_method.stages.classical_start import ClassicalStartConfig
 
-    scene = load_naf(simulated_foot(tmp_path, "foot", 16, 15.0, n_train=4))
+    scene = load_naf(simulated_foot(tmp_path, "foot", 16, 15.0, n_train=25))
     config = registry.load("methods", "k-neas").config
     assert config.reconstruction.iterations is None
-    for wide, count in ((False, 10), (True, 40)):
+    for wide, count in ((False, 20), (True, 40)):  # 25 views: 10 x 50 / 25 single-view updates; wide: 40
         run_dir = tmp_path / f"run-{wide}"
         run_dir.mkdir()
         state = RunState(config=config, scene=scene, run_dir=run_dir, device="cpu", started=0.0, loss_scale=1.0, say=print,
