@@ -64,6 +64,8 @@ class Group:
     failed: int = 0
     errors: list[str] = field(default_factory=list)
     sources: set[str] = field(default_factory=set)
+    done: int = 0  # seeds with a metrics.json
+    seconds: float = 0.0  # their recorded wall time, summed
 
     @property
     def n(self) -> int:
@@ -96,6 +98,8 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
                 g.errors.append(str(rec.get("error") or "")[:200])
             continue
         data = read_json(m, "metrics file")
+        g.done += 1
+        g.seconds += _float(data.get("wall_time_s")) or 0.0
         if cell.oracle:  # the best count's 3D figures; the 2D ones are of the last count's volume, not shown
             data = {**(data.get("trace") or {}).get("best", {}), "scene_source": data.get("scene_source")}
         for metric in (*METRICS, *CSV_EXTRA_METRICS):

@@ -294,23 +294,6 @@ SECTIONS = {
 # ---------------------------------------------------------------------------- the page
 
 
-def _cpu_time(output_dir: str | Path, cells: Sequence[Cell]) -> tuple[float, int]:
-    """Total recorded wall time of the table's complete cells, and how many there are."""
-    from .cells import cell_dir, find_metrics
-
-    total, n = 0.0, 0
-    for c in cells:
-        m = find_metrics(cell_dir(output_dir, c), c.method)
-        if m is None:
-            continue
-        try:
-            total += float(read_json(m, "metrics file").get("wall_time_s") or 0.0)
-            n += 1
-        except Exception:
-            continue
-    return total, n
-
-
 def render(output_dir: str | Path, command: str = "kneas-bench page") -> str:
     """The page's Markdown, from the manifests and cells under ``output_dir``."""
     from .estimate import format_seconds
@@ -332,7 +315,7 @@ def render(output_dir: str | Path, command: str = "kneas-bench page") -> str:
         found += 1
         groups = aggregate.collect(output_dir, cells)
         table = aggregate.LAYOUTS[layout](cells, groups)
-        seconds, done = _cpu_time(output_dir, cells)
+        seconds, done = sum(g.seconds for g in groups.values()), sum(g.done for g in groups.values())
         ours = aggregate.to_markdown(table, groups).replace(f"## {table.title}", f"### Ours: {table.title}", 1)
         parts += [f"{done} of {len(cells)} cells complete, {format_seconds(seconds)} of recorded run time.", "", ours,
                   f"### {paper_title}", "", paper_table(), "", "### Claims", ""]
