@@ -182,6 +182,11 @@ def test_paper_numbers_typed_in_exactly():
     assert paper_results.paper_value("data/chest_50.pickle", "neas-2m", 2, 5, "ssim2d") == 0.899
     assert paper_results.paper_value("foot", "neas-1m", 2, None, "psnr2d") is None
     assert paper_results.paper_value("mine", "k-neas", 2, None, "psnr2d") is None
+    # The paper's numbers apply only to its own scenes; its claims about an anatomy are checked on ours too.
+    assert paper_results.paper_value("ts-chest.pickle", "k-neas", 2, 5, "psnr3d") is None
+    assert [paper_results.scene_key(s) for s in ("Foot", "data/jaw_50.pickle", "ts-chest.pickle")] == ["Foot", "Jaw", None]
+    assert paper_results.scene_key("/data/ts-chest.pickle", same_anatomy=True) == "Chest"
+    assert paper_results.scene_key("head.pickle", same_anatomy=True) is None
 
 
 # ---------------------------------------------------------------------------- aggregation (hand-written fixtures)

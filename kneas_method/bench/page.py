@@ -74,15 +74,6 @@ def read_manifest(output_dir: str | Path, layout: str) -> Optional[list[Cell]]:
 # ---------------------------------------------------------------------------- scenes and rows
 
 
-def paper_scene(scene: str) -> Optional[str]:
-    """The paper's scene of the same anatomy (``Foot``, ``Jaw``, ``Chest``, ``Abdomen``), or None."""
-    stem = PurePath(str(scene)).name.lower()
-    for name in paper.TABLE1:
-        if stem == name.lower() or name.lower() in stem.replace(".pickle", "").replace(".pkl", ""):
-            return name
-    return None
-
-
 @dataclass
 class Verdict:
     """One claim of the paper checked on one of our scenes."""
@@ -159,7 +150,7 @@ def table1_verdicts(cells: Sequence[Cell], groups: dict[tuple, Group]) -> list[V
     scenes = list(dict.fromkeys(c.scene for c in cells))
     views = next((c.views for c in cells), None)
     for s in scenes:
-        ps = paper_scene(s)
+        ps = paper.scene_key(s, same_anatomy=True)
         neas = [k for k in ((s, "neas-1m", 1, views), (s, "neas-2m", 2, views)) if _mean(groups.get(k)) is not None]
         kneas = [k for k in groups if k[0] == s and k[1] == "k-neas" and k[3] == views and _mean(groups[k]) is not None]
         if ps is None:
@@ -198,7 +189,7 @@ def views_verdicts(cells: Sequence[Cell], groups: dict[tuple, Group]) -> list[Ve
     k = next((c.k for c in cells if c.method == "k-neas"), 2)
     views = sorted({c.views for c in cells if c.views is not None})
     for s in dict.fromkeys(c.scene for c in cells):
-        ps = paper_scene(s)
+        ps = paper.scene_key(s, same_anatomy=True)
         for v in views:
             kn, ne = (s, "k-neas", k, v), (s, "neas-2m", 2, v)
             row = paper.TABLE2.get(v) if ps == paper.TABLE2_SCENE else None

@@ -94,13 +94,18 @@ ABLATION_ROWS = {
 MODEL_COLUMNS = {"neas-1m": "NeAS", "neas-2m": "NeAS", "k-neas": "K-NeAS"}
 
 
-def _scene_key(scene: str) -> Optional[str]:
-    """``foot``, ``Foot``, ``data/foot_50.pickle`` -> ``Foot``; None for other scenes."""
+def scene_key(scene: str, same_anatomy: bool = False) -> Optional[str]:
+    """The paper's scene (``Foot``, ``Jaw``, ``Chest``, ``Abdomen``) a kneas scene stands for, or None.
+
+    ``foot``, ``Foot``, ``data/foot_50.pickle`` -> ``Foot`` (the paper's numbers apply). With ``same_anatomy``
+    any scene whose name contains the anatomy counts too (``ts-chest.pickle`` -> ``Chest``): the paper's
+    claims about that anatomy are checked on it, though its numbers are not the same scene's.
+    """
     key = PurePath(scene.strip()).name.lower()
     if key.endswith((".pickle", ".pkl")):
-        key = key.rsplit(".", 1)[0].split("_")[0]
+        key = key.rsplit(".", 1)[0]
     for name in TABLE1:
-        if name.lower() == key:
+        if name.lower() == key.split("_")[0] or same_anatomy and name.lower() in key:
             return name
     return None
 
@@ -110,7 +115,7 @@ def table1_value(scene: str, method: str, k: Optional[int], metric: str) -> Opti
 
     ``neas-1m`` is NeAS 1M, ``neas-2m`` NeAS 2M, ``k-neas`` with K materials K-NeAS KM.
     """
-    name = _scene_key(scene)
+    name = scene_key(scene)
     model = MODEL_COLUMNS.get(method)
     if name is None or model is None or k is None:
         return None
@@ -121,7 +126,7 @@ def table1_value(scene: str, method: str, k: Optional[int], metric: str) -> Opti
 
 def table2_value(scene: str, method: str, k: Optional[int], views: Optional[int], metric: str) -> Optional[float]:
     """The paper's Table 2 value (Chest, 2 materials, 5/10/20/50 views), or None."""
-    if _scene_key(scene) != TABLE2_SCENE or k != 2 or method not in ("neas-2m", "k-neas"):
+    if scene_key(scene) != TABLE2_SCENE or k != 2 or method not in ("neas-2m", "k-neas"):
         return None
     row = TABLE2.get(50 if views is None else int(views))
     return None if row is None else row[MODEL_COLUMNS[method]].get(metric)
@@ -129,7 +134,7 @@ def table2_value(scene: str, method: str, k: Optional[int], views: Optional[int]
 
 def table3_value(scene: str, method: str, k: Optional[int], metric: str) -> Optional[float]:
     """The paper's Table 3 value (Foot, 2 materials, ablation rows), or None."""
-    if _scene_key(scene) != TABLE3_SCENE or k != TABLE3_K or method not in ABLATION_ROWS:
+    if scene_key(scene) != TABLE3_SCENE or k != TABLE3_K or method not in ABLATION_ROWS:
         return None
     return TABLE3[ABLATION_ROWS[method]].get(metric)
 
