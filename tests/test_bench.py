@@ -128,14 +128,18 @@ def test_table1_grid_matches_the_paper_layout():
 def test_views_and_ablation_grids():
     cells = grid.views_table(["chest"], (0, 1, 2), "cpu")
     learned = [c for c in cells if c.method not in CLASSICAL]
-    assert len(learned) == 4 * 2 * 3
+    assert len(learned) == 4 * 3 * 3
     assert {c.views for c in learned} == {5, 10, 20, 50}
-    assert {(c.method, c.k) for c in learned} == {("neas-2m", 2), ("k-neas", 2)}
+    # K = 2 as the paper's table, and k-neas as a user runs it (no K given: no --num-materials)
+    assert {(c.method, c.k) for c in learned} == {("neas-2m", 2), ("k-neas", 2), ("k-neas", None)}
+    assert all("--num-materials" not in c.train_args("o") for c in learned if c.k is None)
+    assert {(c.method, c.k) for c in grid.views_table(["chest"], (0,), "cpu", found_k=False) if c.method not in CLASSICAL} == {
+        ("neas-2m", 2), ("k-neas", 2)}
     for m in CLASSICAL:  # every reference once per view count, seed 0
         refs = [c for c in cells if c.method == m]
         assert sorted(c.views for c in refs) == [5, 10, 20, 50] and {c.seed for c in refs} == {0}
     assert "--views" in [a for c in cells if c.method == "asd-pocs" for a in c.train_args("o")]
-    assert len(cells) == 4 * 2 * 3 + 4 * 5
+    assert len(cells) == 4 * 3 * 3 + 4 * 5
     assert grid.views_table(["chest"], (0,), "cpu", references=()) == [c for c in grid.views_table(["chest"], (0,), "cpu")
                                                                         if c.method not in CLASSICAL]
     assert "--views" in learned[0].train_args("o") and "--num-materials" in [a for c in learned if c.method == "k-neas" for a in c.train_args("o")]
@@ -287,13 +291,16 @@ def test_views_and_ablation_layouts(tmp_path):
     cells = grid.views_table(["chest"], (0,), "tiny", views=(5, 10))
     for c in cells:
         base = {"neas-2m": 30.0, "k-neas": 31.0, "fdk": 20.0, "sart": 40.0, "os-sart": 41.0, "cgls": 42.0, "asd-pocs": 43.0}[c.method] + c.views
-        _write_metrics(tmp_path, c, _m(base, 0.9, base - 10, 0.5), "public benchmark data/chest_50.pickle")
+        found = c.method == "k-neas" and c.k is None  # K from the bounds: the run records the K it found
+        values = {**_m(base - 0.5, 0.9, base - 10.5, 0.5), "num_materials": 3} if found else _m(base, 0.9, base - 10, 0.5)
+        _write_metrics(tmp_path, c, values, "public benchmark data/chest_50.pickle")
     _, _, paths = aggregate.write_tables(tmp_path, "views", cells)
     md = paths[0].read_text()
     row5 = next(line for line in md.splitlines() if line.startswith("| chest | 5 |"))
     parts = [x.strip() for x in row5.strip("|").split("|")]
     assert parts[2:6] == ["35.000", "30.473", "**36.000**", "30.813"]  # better model at this view count in bold
     assert any(line.startswith("| chest | 10 FDK (ref.) |") for line in md.splitlines())
+    assert "| chest | 5 K-NeAS, K found (K = 3) | — | — | 35.500 | — |" in md  # no paper value: the paper fixes K = 2
     # every classical reference at every view count; never bold even where it beats both models
     for label, base in (("FDK", 20.0), ("SART", 40.0), ("OS-SART", 41.0), ("CGLS", 42.0), ("ASD-POCS", 43.0)):
         for v in (5, 10):
@@ -501,8 +508,8 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
         cli.main(["views", "--preset", "tiny", "--seeds", "1", "--dry-run", "--output-dir", str(tmp_path / "o")])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    # 4 view counts x {neas-2m, k-neas} + 4 view counts x 5 classical references
-    assert "36 of 36 cells to run" in out and "asd-pocs (best of 1-40)" in out and "steps x 0.04 s (tiny, cpu)" in out and "classical asd-pocs" in out
+    # 4 view counts x {neas-2m, k-neas K = 2, k-neas K found} + 4 view counts x (5 classical references + 2 oracles)
+    assert "40 of 40 cells to run" in out and "asd-pocs (best of 1-40)" in out and "steps x 0.04 s (tiny, cpu)" in out and "classical asd-pocs" in out
     assert not (tmp_path / "o").exists()  # a dry run creates nothing
     for argv, msg in ((["table1", "--seeds", "0"], "number of seeds"),
                       (["grid", "--methods", "nope"], "unknown method"),
@@ -586,6 +593,8 @@ def test_results_page_from_fake_cells_has_the_papers_numbers_and_a_verdict_per_c
         v = vals.get((c.group[1], c.views))
         if v and c.seed < len(v):
             values = _m(40.0, 0.9, v[c.seed], 0.7 if c.method == "asd-pocs" else 0.8)
+            if c.method == "k-neas" and c.k is None:  # K found: 1 dB above K = 2, above the oracle at 5 views
+                values = {**_m(40.0, 0.9, v[c.seed] + 1.0, 0.8), "num_materials": 4}
             if c.oracle:  # metrics.json's own figures are the last count's; the trace has the best
                 values = {**_m(40.0, 0.9, 1.0, 0.1), "trace": {"psnr3d": [1.0, v[c.seed]], "best": {"iterations": 2, "psnr3d": v[c.seed],
                                                                                                    "ssim3d": 0.7}}}
@@ -613,10 +622,12 @@ def test_results_page_from_fake_cells_has_the_papers_numbers_and_a_verdict_per_c
     assert "within one standard deviation" in next(x for x in claims if "50 views: K-NeAS below" in x)
     # the classical bar: ASD-POCS's best count (23.0 dB) at 5 views is above K-NeAS's 22.1, its default count's 21.0 is not;
     # at 50 views K-NeAS's 30.5 is above the oracle's 30.1
-    assert verdict("chest", "5 views: K-NeAS at or above the best classical") == "does not hold"
-    assert "3D PSNR 22.100 vs 23.000 (ASD-POCS best of 1-40 (oracle)" in next(x for x in claims if "5 views: K-NeAS at or above" in x)
+    assert verdict("chest", "5 views: K-NeAS 2M at or above the best classical") == "does not hold"
+    assert "3D PSNR 22.100 vs 23.000 (ASD-POCS best of 1-40 (oracle)" in next(x for x in claims if "5 views: K-NeAS 2M at or above" in x)
+    assert verdict("chest", "5 views: K-NeAS, K found at or above the best classical") == "holds"
+    assert "| chest | 5 K-NeAS, K found (K = 4) |" in text
     assert "| chest | 5 ASD-POCS best of 1-40 (oracle) | — | — | — | — | 23.000 | — | 0.700 | — |" in text
-    assert verdict("chest", "50 views: K-NeAS at or above the best classical") == "holds"
+    assert verdict("chest", "50 views: K-NeAS 2M at or above the best classical") == "holds"
     assert text.count("- **") == len(claims) and f"Verdicts: {sum('holds**' in x for x in claims)} holds" in text
 
 
@@ -663,12 +674,12 @@ def test_a_table_stopped_mid_cell_resumes_and_the_page_counts_every_cell(tmp_pat
     assert second.returncode == 0, second.stderr
     again = _calls(log)[done_before:]
     assert again[0]["args"][0] == "--resume" and again[0]["args"][1].endswith("20240101-000009")
-    assert [c["args"][0] for c in again[1:]].count("k-neas") == 1  # the 10-view cell, once
+    assert [c["args"][0] for c in again[1:]].count("k-neas") == 3  # K found at 5 views, then both 10-view cells, once each
     assert sum(1 for c in _calls(log) if c["args"][0] == "neas-2m") == 2  # 5 views before the stop, 10 after; none twice
     page_run = subprocess.run([sys.executable, "-c", "from kneas_method.cli.bench import main; main()", "page", "--output-dir",
                                str(out), "--write", str(tmp_path / "page.md")], capture_output=True, text=True, timeout=120)
     assert page_run.returncode == 0, page_run.stderr
-    assert "10 of 10 cells complete" in (tmp_path / "page.md").read_text()
+    assert "12 of 12 cells complete" in (tmp_path / "page.md").read_text()
 
 
 def test_page_without_a_table_is_a_one_line_error(tmp_path, capsys):

@@ -12,7 +12,8 @@ Layouts (``kneas-bench``):
   NeAS 2M = ``neas-2m`` (no NeAS 3M/4M: ``—``), K-NeAS KM = ``k-neas`` with K
   materials. Best per scene and metric in bold (among the learned models).
 - ``views`` (Table 2): rows Scene x #views, NeAS (``neas-2m``) and K-NeAS
-  (``k-neas`` K = 2) columns; bold marks the better model at each view count.
+  (``k-neas`` K = 2) columns, then a "K-NeAS, K found" row (``k-neas`` with no K
+  given) where it ran; bold marks the best learned row at each view count.
 - ``ablation`` (Table 3): one row per ablation method; bold = best per scene.
 - ``grid``: one row per (scene, method, K, views); bold = best per scene.
 
@@ -44,6 +45,7 @@ METRICS = paper.METRICS  # shown in the tables
 CSV_EXTRA_METRICS = ("psnr3d_ls",)  # also in the CSV files
 PUBLIC_PREFIX = "public benchmark"
 DECIMALS = 3
+FOUND_K_LABEL = "K-NeAS, K found"  # Table 2's row of k-neas run without --num-materials
 
 
 def _float(v: Any) -> Optional[float]:
@@ -66,6 +68,7 @@ class Group:
     sources: set[str] = field(default_factory=set)
     done: int = 0  # seeds with a metrics.json
     seconds: float = 0.0  # their recorded wall time, summed
+    materials: set[int] = field(default_factory=set)  # the K each run used (metrics.json num_materials)
 
     @property
     def n(self) -> int:
@@ -100,6 +103,8 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
         data = read_json(m, "metrics file")
         g.done += 1
         g.seconds += _float(data.get("wall_time_s")) or 0.0
+        if isinstance(data.get("num_materials"), int):
+            g.materials.add(data["num_materials"])
         if cell.oracle:  # the best count's 3D figures; the 2D ones are of the last count's volume, not shown
             data = {**(data.get("trace") or {}).get("best", {}), "scene_source": data.get("scene_source")}
         for metric in (*METRICS, *CSV_EXTRA_METRICS):
@@ -341,7 +346,7 @@ def views_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
     models = ["NeAS", "K-NeAS"]
     public = _public_scenes(groups)
     views = sorted({c.views for c in cells if c.views is not None})
-    k = next((c.k for c in cells if c.method == "k-neas"), 2)
+    k = next((c.k for c in cells if c.method == "k-neas" and c.k is not None), 2)
     rows = []
     for s in _scenes(cells):
         for v in views:
@@ -353,6 +358,10 @@ def views_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
                     if s in public:
                         pap[(metric, model)] = paper.table2_value(s, method, key[2], v, metric)
             rows.append(Row([s, str(v)], f"{s}/{v}", entries, pap, scene=s))
+            found = (s, "k-neas", None, v)  # k-neas as a user runs it: K from the bounds
+            if found in groups:
+                ks = "/".join(map(str, sorted(groups[found].materials))) or "?"
+                rows.append(Row([s, f"{v} {FOUND_K_LABEL} (K = {ks})"], f"{s}/{v}", {(m, "K-NeAS"): found for m in METRICS}, scene=s))
         for v in views:
             for ref in _references(cells):
                 key = (s, ref, None, v)
@@ -360,7 +369,7 @@ def views_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
                     rows.append(Row([s, f"{v} {reference_label(ref)}"], f"{s}/{v}", {(m, "NeAS"): key for m in METRICS},
                                     reference=True, scene=s))
     notes = _common_notes(cells)
-    notes[0] = notes[0].replace("bold = best of our learned models", "bold = the better of NeAS / K-NeAS at each view count")
+    notes[0] = notes[0].replace("bold = best of our learned models", "bold = the best learned row at each view count")
     return Table("table2_views", f"Table 2: sparse views, NeAS (neas-2m) vs K-NeAS (k-neas, K = {k})", ["Scene", "# Views"], models, rows,
                  notes + _source_note(groups, _scenes(cells), bool(public)), bool(public))
 

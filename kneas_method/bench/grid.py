@@ -240,11 +240,15 @@ def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: S
 
 def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
                 views: Sequence[int] = VIEWS, k: int = 2, references: Sequence[str] = REFERENCE_METHODS,
-                extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
-    """Table 2: views x {neas-2m, k-neas with K = 2} per scene, plus each classical reference per scene and view count."""
+                extra: Sequence[str] = (), oracles: Sequence[str] = (), found_k: bool = True) -> list[Cell]:
+    """Table 2: views x {neas-2m, k-neas with K = 2} per scene, plus each classical reference per scene and view count.
+
+    ``found_k`` adds k-neas as a user runs it (no K given: K comes from the bounds), one cell per view count and seed.
+    """
     _check_common(scenes, preset, views)
     extra = tuple(extra)
-    cells = [Cell(s, m, k, v, seed, preset, extra) for s in scenes for v in views for m in ("neas-2m", "k-neas") for seed in seeds]
+    models = [("neas-2m", 2), ("k-neas", k)] + ([("k-neas", None)] if found_k else [])
+    cells = [Cell(s, m, mk, v, seed, preset, extra) for s in scenes for v in views for m, mk in models for seed in seeds]
     cells += _reference_cells(scenes, views, references, preset, extra, oracles)
     return _dedupe(cells)
 

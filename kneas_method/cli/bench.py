@@ -78,7 +78,7 @@ class Table1(_Common):
 
 @dataclass
 class Views(_Common):
-    """Table 2: views x {NeAS (neas-2m), K-NeAS (k-neas K=2)} x seeds."""
+    """Table 2: views x {NeAS (neas-2m), K-NeAS (k-neas K=2), K-NeAS with K found} x seeds."""
 
     scenes: tuple[str, ...] = ("chest",)
     """built-in scene names or NAF pickle paths"""
@@ -86,6 +86,8 @@ class Views(_Common):
     """training view counts"""
     num_materials: int = 2
     """K of the k-neas runs (neas-2m is always 2)"""
+    found_k: bool = True
+    """also run k-neas as a user does, with no K given (K found from the bounds): one more row per view count"""
 
 
 @dataclass
@@ -156,7 +158,7 @@ def expand(args: _Common) -> list:
     if isinstance(args, Table1):
         cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.references, extra, args.oracles)
     elif isinstance(args, Views):
-        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra, args.oracles)
+        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra, args.oracles, args.found_k)
     elif isinstance(args, Ablation):
         cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.references, extra, args.oracles)
     else:
