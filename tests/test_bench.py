@@ -270,6 +270,11 @@ def test_table1_aggregation_mean_std_bold_paper_and_references(tmp_path):
     jaw2 = [x.strip() for x in lines[("jaw", "2M")].strip("|").split("|")]
     assert jaw2[2] == "—"  # never run
     assert "jaw: built-in synthetic phantom" in md
+    # a scene file of the user's own is neither the public benchmark nor a built-in phantom
+    own = {("knee.pickle", "k-neas", 2, None): aggregate.Group(("knee.pickle", "k-neas", 2, None), sources={"file knee.pickle"}),
+           ("jaw", "k-neas", 2, None): aggregate.Group(("jaw", "k-neas", 2, None), sources={"built-in phantom jaw"})}
+    notes = aggregate._source_note(own, ["knee.pickle", "jaw"], False)
+    assert notes[0].startswith("jaw: built-in synthetic phantom") and notes[1].startswith("knee.pickle: scene file(s) of their own")
 
     import csv
 

@@ -43,7 +43,8 @@ from .grid import ORACLE_ITERATIONS, ORACLE_SUFFIX, REFERENCE_METHODS, Cell, is_
 
 METRICS = paper.METRICS  # shown in the tables
 CSV_EXTRA_METRICS = ("psnr3d_ls",)  # also in the CSV files
-PUBLIC_PREFIX = "public benchmark"
+PUBLIC_PREFIX = "public benchmark"  # metrics.json scene_source of NAF's published scenes
+BUILTIN_PREFIX = "built-in phantom"  # ... and of the built-in phantoms
 DECIMALS = 3
 FOUND_K_LABEL = "K-NeAS, K found"  # Table 2's row of k-neas run without --num-materials
 
@@ -267,10 +268,15 @@ def _public_scenes(groups: dict[tuple, Group]) -> set[str]:
 
 def _source_note(groups: dict[tuple, Group], scenes: Sequence[str], with_paper: bool) -> list[str]:
     public = _public_scenes(groups)
-    builtin = [s for s in scenes if s not in public and any(k[0] == s and g.sources for k, g in groups.items())]
+    sources = {s: set().union(*(g.sources for k, g in groups.items() if k[0] == s)) for s in scenes if s not in public}
+    builtin = [s for s, src in sources.items() if src and all(x.startswith(BUILTIN_PREFIX) for x in src)]
+    own = [s for s, src in sources.items() if src and s not in builtin]
     notes = []
     if builtin:
         notes.append(f"{', '.join(builtin)}: built-in synthetic phantom(s), not the public NAF benchmark; "
+                     "the paper's published numbers are not comparable and are not shown for them.")
+    if own:
+        notes.append(f"{', '.join(own)}: scene file(s) of their own, not the public NAF benchmark; "
                      "the paper's published numbers are not comparable and are not shown for them.")
     if with_paper:
         notes.append("(paper) columns: the published numbers of the K-NeAS paper for the public benchmark; its 3D PSNR "
