@@ -622,6 +622,8 @@ def test_results_page_from_fake_cells_has_the_papers_numbers_and_a_verdict_per_c
     assert verdict("jaw", "Jaw: K-NeAS below NeAS") == "does not hold"
     assert "K-NeAS 2M − NeAS 2M = +0.90 dB" in next(x for x in claims if "on jaw:" in x)
     assert verdict(knee, "K-NeAS against NeAS") == "not comparable"
+    assert "| knee.pickle | 1M |" in text  # a scene file by its name in the tables, not the path it ran from
+    assert not [line for line in text.splitlines() if line.startswith(("|", "- ")) and str(tmp_path) in line]
     assert verdict("chest", "5 views: K-NeAS above NeAS") == "holds"
     assert verdict("chest", "50 views: K-NeAS below NeAS") == "not comparable"
     assert "within one standard deviation" in next(x for x in claims if "50 views: K-NeAS below" in x)

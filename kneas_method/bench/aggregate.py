@@ -33,7 +33,7 @@ import io
 import math
 import statistics
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, Optional, Sequence
 
 from ..engine.run_dir import read_json
@@ -201,6 +201,8 @@ def to_markdown(table: Table, groups: dict[tuple, Group]) -> str:
              "|" + "|".join([":--"] * len(table.label_headers) + ["--:"] * (len(headers) - len(table.label_headers))) + "|"]
     for i, row in enumerate(table.rows):
         cells = list(row.labels)
+        if row.scene and cells[0] == row.scene:  # a scene file by its name: the CSV files keep the path
+            cells[0] = scene_name(row.scene)
         for metric in METRICS:
             for model in table.models:
                 key = row.entries.get((metric, model))
@@ -262,6 +264,11 @@ def _scenes(cells: Sequence[Cell]) -> list[str]:
     return list(dict.fromkeys(c.scene for c in cells))
 
 
+def scene_name(scene: str) -> str:
+    """How a table names a scene: a built-in name as it is, a scene file by its file name."""
+    return PurePath(scene).name
+
+
 def _public_scenes(groups: dict[tuple, Group]) -> set[str]:
     return {key[0] for key, g in groups.items() if g.public}
 
@@ -273,10 +280,10 @@ def _source_note(groups: dict[tuple, Group], scenes: Sequence[str], with_paper: 
     own = [s for s, src in sources.items() if src and s not in builtin]
     notes = []
     if builtin:
-        notes.append(f"{', '.join(builtin)}: built-in synthetic phantom(s), not the public NAF benchmark; "
+        notes.append(f"{', '.join(map(scene_name, builtin))}: built-in synthetic phantom(s), not the public NAF benchmark; "
                      "the paper's published numbers are not comparable and are not shown for them.")
     if own:
-        notes.append(f"{', '.join(own)}: scene file(s) of their own, not the public NAF benchmark; "
+        notes.append(f"{', '.join(map(scene_name, own))}: scene file(s) of their own, not the public NAF benchmark; "
                      "the paper's published numbers are not comparable and are not shown for them.")
     if with_paper:
         notes.append("(paper) columns: the published numbers of the K-NeAS paper for the public benchmark; its 3D PSNR "

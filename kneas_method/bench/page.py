@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path, PurePath
+from pathlib import Path
 from typing import Optional, Sequence
 
 from ..engine.run_dir import read_json, write_json
@@ -84,7 +84,7 @@ class Verdict:
     why: str
 
     def line(self) -> str:
-        return f"- **{self.status}** — {self.claim} — on {PurePath(self.scene).name}: {self.why}"
+        return f"- **{self.status}** — {self.claim} — on {aggregate.scene_name(self.scene)}: {self.why}"
 
 
 def _mean(g: Optional[Group], metric: str = CLAIM_METRIC) -> Optional[float]:
