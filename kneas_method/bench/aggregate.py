@@ -355,11 +355,16 @@ def table1(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
                  _common_notes(cells) + _source_note(groups, _scenes(cells), with_paper), with_paper)
 
 
+def views_k(cells: Sequence[Cell]) -> int:
+    """The K that Table 2's K-NeAS rows were given (the found-K row has none; 2 when none ran)."""
+    return next((c.k for c in cells if c.method == "k-neas" and c.k is not None), 2)
+
+
 def views_table(cells: Sequence[Cell], groups: dict[tuple, Group]) -> Table:
     models = ["NeAS", "K-NeAS"]
     public = _public_scenes(groups)
     views = sorted({c.views for c in cells if c.views is not None})
-    k = next((c.k for c in cells if c.method == "k-neas" and c.k is not None), 2)
+    k = views_k(cells)
     rows = []
     for s in _scenes(cells):
         for v in views:

@@ -187,7 +187,7 @@ def views_verdicts(cells: Sequence[Cell], groups: dict[tuple, Group]) -> list[Ve
     K-NeAS (at K = 2, and with K found when that row ran) at or above the best classical reference at every
     view count, in 3D PSNR and 3D SSIM."""
     out = []
-    k = next((c.k for c in cells if c.method == "k-neas" and c.k is not None), 2)
+    k = aggregate.views_k(cells)
     views = sorted({c.views for c in cells if c.views is not None})
     for s in dict.fromkeys(c.scene for c in cells):
         ps = paper.scene_key(s, same_anatomy=True)
