@@ -16,7 +16,8 @@ The paper's procedure (``method="gmm"``, the default):
    unless ``n_components`` is given; sort the components by mean;
 3. ``b_0 = 0``; between adjacent components ``b_k`` is the minimum of the
    *mixture* density on the interval between their two means (dense grid);
-   ``b_K = upper_factor ×`` the ``upper_percentile`` percentile of the kept values;
+   ``b_K = upper_factor ×`` the ``upper_percentile`` percentile of the kept values
+   (with ``cover_percentile``, at least that percentile of the kept values);
 4. ``β_k = b_k``, ``α_k = b_{k+1} − b_k``.
 
 Alternatives (options beside it, never silently instead of it; SPEC §4):
@@ -205,6 +206,11 @@ class GMMBounds:
             uses ``DEFAULT_AIR_FRACTION`` (5 %) of the 99.5th percentile of all
             values (scale-free, so it works in any unit).
         upper_percentile, upper_factor: ``b_K = upper_factor × percentile``.
+        cover_percentile: ``b_K`` is at least this percentile of the kept values (0 = no floor), so
+            the last material holds what the volume shows: a real scan's bone and contrast are a thin
+            tail, 0.1-0.3 % of its values, reaching twice ``upper_factor`` x the 99.5th percentile, while
+            on a piecewise-constant volume only its edges' overshoot (under 0.05 %) lies above that. The
+            histogram's unit (``unit_``) stays the ``upper_percentile`` value.
         random_state: seed for subsampling and for the GaussianMixture fits.
         max_samples: at most this many kept values are used for the fits.
         method: ``"gmm"`` (paper: mixture-density valleys), ``"quantile"`` or
@@ -222,7 +228,8 @@ class GMMBounds:
     every boundary placed by the rule; filled for each K tried under ``bic-valleys``), ``gmm_`` (the chosen
     ``sklearn.mixture.GaussianMixture``, fitted on values divided by ``unit_``; None when the
     ``peaks`` rule placed the bounds), ``k_rule_used_`` (the rule that chose K), ``peaks_`` (the
-    histogram's peaks, data units, under the ``peaks`` rule),
+    histogram's peaks, data units, under the ``peaks`` rule), ``cover_`` (the ``cover_percentile`` value of
+    the kept values, data units; 0 when none),
     ``air_threshold_``, ``n_values_``, ``n_kept_``, ``warnings_``, ``kept_`` (the
     values used for the fits).
     """
@@ -240,6 +247,7 @@ class GMMBounds:
         n_init: int = 1,
         k_rule: str = "bic",
         min_std: float = 0.0,
+        cover_percentile: float = 0.0,
     ):
         self.n_components = n_components
         self.max_components = max_components
@@ -252,6 +260,7 @@ class GMMBounds:
         self.n_init = n_init
         self.k_rule = k_rule
         self.min_std = min_std
+        self.cover_percentile = cover_percentile
 
     # ------------------------------------------------------------- settings
     def _check_settings(self):
@@ -269,6 +278,9 @@ class GMMBounds:
             raise ConfigError(f"max_components must be an integer >= 1, got {self.max_components!r}")
         if self.n_components is not None and not (isinstance(self.n_components, (int, np.integer)) and self.n_components >= 1):
             raise ConfigError(f"n_components must be a positive integer or None (pick by BIC), got {self.n_components!r}")
+        if not (isinstance(self.cover_percentile, (int, float, np.integer, np.floating)) and not isinstance(self.cover_percentile, bool)
+                and 0 <= self.cover_percentile <= 100):
+            raise ConfigError(f"cover_percentile must be a percentile in [0, 100] (0 = none), got {self.cover_percentile!r}")
         if not (0 < self.upper_percentile <= 100):
             raise ConfigError(f"upper_percentile must be in (0, 100], got {self.upper_percentile}")
         if not self.upper_factor > 0:
@@ -280,7 +292,7 @@ class GMMBounds:
     def get_params(self) -> dict:
         return {k: getattr(self, k) for k in ("n_components", "max_components", "air_threshold", "upper_percentile",
                                                "upper_factor", "random_state", "max_samples", "method", "n_init",
-                                               "k_rule", "min_std")}
+                                               "k_rule", "min_std", "cover_percentile")}
 
     # ------------------------------------------------------------------ fit
     def _keep(self, values) -> np.ndarray:
@@ -341,12 +353,13 @@ class GMMBounds:
             if fallback is not None:
                 kept = self._keep(fallback() if callable(fallback) else fallback)
                 self.k_rule_used_ = f"bic-valleys on {fallback_name} ({count})"
+        self.cover_ = self._cover(kept)
         rng = np.random.default_rng(self.random_state)
         if kept.size > self.max_samples:
             kept = rng.choice(kept, size=self.max_samples, replace=False)
         self.kept_ = kept
 
-        upper = self.upper_factor * float(np.percentile(kept, self.upper_percentile))
+        upper = self._top(float(np.percentile(kept, self.upper_percentile)))
         # Fit on values in units of the upper percentile so the sklearn covariance
         # regulariser (1e-6, or min_std squared) means the same whatever the attenuation unit.
         self.unit_ = float(np.percentile(kept, self.upper_percentile)) or 1.0
@@ -407,12 +420,21 @@ class GMMBounds:
         self.unit_ = unit
         self.kept_ = kept
         self.n_components_ = int(peaks.size)
-        b = np.array([0.0, *valleys, self.upper_factor * unit])
+        self.cover_ = self._cover(kept)
+        b = np.array([0.0, *valleys, self._top(unit)])
         self.means_ = np.asarray(peaks, dtype=np.float64)
         which = np.clip(np.searchsorted(b, kept, side="right") - 1, 0, peaks.size - 1)
         self.weights_ = np.bincount(which, minlength=peaks.size) / kept.size
         self.stds_ = np.array([kept[which == k].std() if np.any(which == k) else 0.0 for k in range(peaks.size)])
         return self._set_boundaries(b)
+
+    def _cover(self, kept: np.ndarray) -> float:
+        return float(np.percentile(kept, self.cover_percentile)) if self.cover_percentile > 0 else 0.0
+
+    def _top(self, percentile: float) -> float:
+        """``b_K`` from the ``upper_percentile`` value (data units): ``upper_factor`` times it, at least
+        ``cover_`` (the ``cover_percentile`` value of all kept values, before any subsampling)."""
+        return max(self.upper_factor * percentile, self.cover_)
 
     def _set_boundaries(self, b: np.ndarray) -> "GMMBounds":
         if b[-1] <= b[-2]:

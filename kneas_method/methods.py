@@ -191,6 +191,9 @@ class TrainConfig(RunConfig):
             the non-air values (None = the procedure's: paper 99.5, SPEC §4; 100 covers the volume's
             whole range).
         bounds_upper_factor: see ``bounds_upper_percentile`` (None = the procedure's: paper 1.15).
+        bounds_cover_percentile: the top bound is at least this percentile of the non-air values, so
+            the last material holds the densest tissue a scan shows (a real scan's bone and contrast);
+            0 = no floor (None = the procedure's: paper 0, refine-classical 99.99).
         reuse_prior: reuse a NeAS-1M prior already trained for the same scene, views,
             preset, seed and prior settings (``DIR/<scene>/neas-1m-prior/<key>/``).
         reconstruction: settings of the classical start's reconstruction.
@@ -211,6 +214,7 @@ class TrainConfig(RunConfig):
     bounds_gmm_restarts: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
     bounds_upper_percentile: Optional[float] = field(default=None, metadata=at_least(0, strict=True, at_most=100))
     bounds_upper_factor: Optional[float] = field(default=None, metadata=at_least(0, strict=True))
+    bounds_cover_percentile: Optional[float] = field(default=None, metadata=at_least(0, at_most=100))
     reuse_prior: bool = True
     reconstruction: ReconstructionOptions = field(default_factory=ReconstructionOptions)
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -249,7 +249,8 @@ def resolve(config: RunConfig) -> RunConfig:
     for flag, value in (("--trainer.epochs", trainer.epochs), ("--bounds-max-materials", config.bounds_max_materials),
                         ("--bounds-gmm-restarts", config.bounds_gmm_restarts),
                         ("--bounds-upper-percentile", config.bounds_upper_percentile),
-                        ("--bounds-upper-factor", config.bounds_upper_factor)):
+                        ("--bounds-upper-factor", config.bounds_upper_factor),
+                        ("--bounds-cover-percentile", config.bounds_cover_percentile)):
         if value is None:
             raise ConfigError(f"{flag} is not set, and procedure {proc.name!r} and preset {name!r} leave it unset too; give {flag}")
     if automatic_bounds(config) and config.stages.classical_start is None and trainer.prior_epochs is None:
@@ -275,7 +276,9 @@ def describe(config: TrainConfig) -> list[str]:
                 "peaks": "one material per histogram peak (a mixture where there are fewer than two)"}[config.bounds_k_rule]
         extra = (f", the best of {config.bounds_gmm_restarts} GMM starts" if config.bounds_gmm_restarts != 1 else "") + \
                 (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")
-        steps.append(f"bounds: {rule}, K = 1..{config.bounds_max_materials}{extra}, on the voxel values of {source}")
+        top = f"the top bound {config.bounds_upper_factor:g} x the {config.bounds_upper_percentile:g}th percentile" + \
+              (f" or the {config.bounds_cover_percentile:g}th, whichever is higher" if config.bounds_cover_percentile else "")
+        steps.append(f"bounds: {rule}, K = 1..{config.bounds_max_materials}{extra}, on the voxel values of {source}; {top}")
     steps += [cfg.describe() for cfg in stage_configs(config) if type(cfg).phase == "before-training"]
     steps.append(f"training: {config.trainer.epochs} epochs")
     steps += [cfg.describe() for cfg in stage_configs(config) if type(cfg).phase == "after-training"]

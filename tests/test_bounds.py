@@ -307,6 +307,32 @@ def test_peaks_rule_finds_every_plateau_and_does_not_depend_on_the_seed():
     assert GMMBounds.from_dict(d).K == len(ABDOMEN_LIKE)
 
 
+@pytest.mark.parametrize("rule", ["peaks", "bic-valleys"])
+def test_cover_percentile_puts_a_dense_tail_inside_the_last_material_and_keeps_the_rest(rule):
+    """A real scan's bone: a thin tail (0.3 % of the values) far above the 99.5th percentile. With
+    cover_percentile the top bound reaches that percentile of the tail; under the peaks rule the
+    materials, their inner boundaries and the histogram's unit stay those without it (a mixture rule
+    may give the tail a material of its own, now that its boundary lies below the top). A few edge
+    voxels' overshoot (a piecewise-constant volume's, 0.01 %) leave the capped top as it is."""
+    rng = np.random.default_rng(0)
+    body = np.r_[rng.normal(0.1, 0.004, 40_000), rng.normal(0.2, 0.004, 60_000)]
+    values = np.r_[body, np.linspace(0.3, 0.9, 300)]
+    capped = GMMBounds(max_components=4, k_rule=rule).fit(values)
+    cover = GMMBounds(max_components=4, k_rule=rule, cover_percentile=99.99).fit(values)
+    assert capped.boundaries_[-1] < 0.3 and cover.boundaries_[-1] > 0.85
+    assert cover.boundaries_[-1] == pytest.approx(np.percentile(values, 99.99))
+    assert cover.unit_ == capped.unit_ and cover.n_components_ >= capped.n_components_
+    if rule == "peaks":
+        assert cover.n_components_ == capped.n_components_ == 2
+        np.testing.assert_array_equal(cover.boundaries_[:-1], capped.boundaries_[:-1])
+    assert cover.to_dict()["settings"]["cover_percentile"] == 99.99
+    overshoot = np.r_[body, np.linspace(0.2, 0.3, 10)]  # 10 edge voxels above the capped top
+    np.testing.assert_array_equal(GMMBounds(max_components=4, k_rule=rule, cover_percentile=99.99).fit(overshoot).boundaries_,
+                                  GMMBounds(max_components=4, k_rule=rule).fit(overshoot).boundaries_)
+    with pytest.raises(ConfigError, match="cover_percentile must be a percentile"):
+        GMMBounds(cover_percentile=101).fit(values)
+
+
 def test_peaks_rule_finds_well_separated_materials(fitted):
     values, ref = fitted  # three materials 0.3-0.4 apart, 0.03-0.05 wide: three clear peaks
     gb = GMMBounds(max_components=6, k_rule="peaks").fit(values)

@@ -180,7 +180,8 @@ def test_cpu_preset_picks_k_by_histogram_peaks_unless_told_otherwise():
     assert (cpu.bounds_max_materials, cpu.bounds_k_rule, cpu.bounds_min_std, cpu.bounds_gmm_restarts) == (8, "peaks", 0.0, 3)
     note = next(n for n in presets.describe(cpu) if "bounds:" in n)
     assert "one material per histogram peak" in note and "K = 1..8" in note and "the best of 3 GMM starts" in note
-    assert note.endswith("on the voxel values of the ASD-POCS start")
+    assert note.endswith("on the voxel values of the ASD-POCS start; the top bound 1.15 x the 99.5th percentile or the 99.99th, "
+                         "whichever is higher")
     valleys = presets.resolve(dataclasses.replace(c, bounds_k_rule="bic-valleys"))
     note = next(n for n in presets.describe(valleys) if "bounds:" in n)
     assert "K by the lowest BIC with every boundary a density valley, K = 1..8" in note

@@ -69,6 +69,8 @@ def test_paper_procedure_on_the_cpu_preset_runs_only_the_papers_stages(tiny_scen
     assert code == 0, err
     assert ran == [] and algorithms == ["fdk"]
     assert "procedure: paper" in out and "1. bounds: K by BIC, K = 1..4, on the voxel values of a NeAS-1M prior" in out
+    assert "; the top bound 1.15 x the 99.5th percentile" in out
+    assert "whichever is higher" not in out  # the paper's top bound has no floor
     assert "settings beside the paper's" not in out and "prior: training the NeAS-1M prior" in out
     run_dir = run_dir_of(out)
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -171,10 +173,19 @@ def test_the_top_bound_follows_the_procedure_or_the_user():
 
     base = registry.load("methods", "k-neas").config
     cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
+    paper = presets.resolve(dataclasses.replace(base, preset="cpu", procedure="paper"))
     assert (cpu.bounds_upper_percentile, cpu.bounds_upper_factor) == (99.5, 1.15)  # SPEC §4's, as the paper's
-    whole = presets.resolve(dataclasses.replace(base, preset="cpu", bounds_upper_percentile=100.0, bounds_upper_factor=1.0))
-    values = np.r_[np.full(5000, 0.2), np.full(5000, 0.5), np.linspace(0.6, 1.0, 20)]  # a few dense voxels above the 99.5th
-    top_paper = run_mixtures(cpu, K=2).fit(values).boundaries_[-1]
-    top_whole = run_mixtures(whole, K=2).fit(values).boundaries_[-1]
+    assert cpu.bounds_cover_percentile == 99.99 and paper.bounds_cover_percentile == 0.0
+    capped = presets.resolve(dataclasses.replace(base, preset="cpu", bounds_cover_percentile=0.0))
+    whole = presets.resolve(dataclasses.replace(base, preset="cpu", bounds_upper_percentile=100.0, bounds_upper_factor=1.0,
+                                                bounds_cover_percentile=0.0))
+    # a tail of dense voxels above the 99.5th percentile (0.2 % of the values, as a real scan's bone)
+    values = np.r_[np.full(5000, 0.2), np.full(5000, 0.5), np.linspace(0.6, 1.0, 20)]
+    top_paper = run_mixtures(paper, K=2).fit(values).boundaries_[-1]
     assert top_paper == pytest.approx(1.15 * np.percentile(values[values > 0.05], 99.5), rel=1e-6) and top_paper < 0.6
-    assert top_whole == pytest.approx(1.0)  # the whole range: the densest voxel is inside the last material
+    assert run_mixtures(capped, K=2).fit(values).boundaries_[-1] == pytest.approx(top_paper)
+    assert run_mixtures(whole, K=2).fit(values).boundaries_[-1] == pytest.approx(1.0)  # the whole range by percentile
+    # the default covers the tail up to its 99.99th percentile
+    kept = values[values > 0.05 * np.percentile(values, 99.5)]
+    top = run_mixtures(cpu, K=2).fit(values).boundaries_[-1]
+    assert top == pytest.approx(np.percentile(kept, 99.99)) and top > 0.95

@@ -63,7 +63,8 @@ def run_mixtures(config, *, K: Optional[int] = None, k_rule: Optional[str] = Non
     return GMMBounds(n_components=K, random_state=int(config.seed), method=config.bounds_method,
                      max_components=int(config.bounds_max_materials), k_rule=k_rule or config.bounds_k_rule,
                      min_std=float(config.bounds_min_std), n_init=int(config.bounds_gmm_restarts),
-                     upper_percentile=float(config.bounds_upper_percentile), upper_factor=float(config.bounds_upper_factor))
+                     upper_percentile=float(config.bounds_upper_percentile), upper_factor=float(config.bounds_upper_factor),
+                     cover_percentile=float(config.bounds_cover_percentile or 0.0))
 
 
 @dataclass

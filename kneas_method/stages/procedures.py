@@ -31,7 +31,7 @@ class Procedure:
         settings: values for settings the run leaves at None, by section: ``model`` (``s_init``,
             ``lambda_eikonal``, ``occupancy_grid``), ``trainer`` (``lr_decay_at``) and ``run`` (the
             bounds' ``bounds_k_rule``, ``bounds_max_materials``, ``bounds_min_std``, ``bounds_gmm_restarts``,
-            ``bounds_upper_percentile``, ``bounds_upper_factor``).
+            ``bounds_upper_percentile``, ``bounds_upper_factor``, ``bounds_cover_percentile``).
     """
 
     name: str
@@ -48,7 +48,7 @@ PAPER = Procedure(
         "model": {"s_init": 20.0, "lambda_eikonal": 0.01, "occupancy_grid": False},
         "trainer": {"lr_decay_at": 0.5},
         "run": {"bounds_k_rule": "bic", "bounds_max_materials": 4, "bounds_min_std": 0.0, "bounds_gmm_restarts": 1,
-                "bounds_upper_percentile": 99.5, "bounds_upper_factor": 1.15},
+                "bounds_upper_percentile": 99.5, "bounds_upper_factor": 1.15, "bounds_cover_percentile": 0.0},
     },
 )
 
@@ -64,7 +64,7 @@ REFINE_CLASSICAL = Procedure(
         "model": {"s_init": 100.0, "lambda_eikonal": 1e-5, "occupancy_grid": True},
         "trainer": {"lr_decay_at": 0.85},
         "run": {"bounds_k_rule": "peaks", "bounds_max_materials": 8, "bounds_min_std": 0.0, "bounds_gmm_restarts": 3,
-                "bounds_upper_percentile": 99.5, "bounds_upper_factor": 1.15},
+                "bounds_upper_percentile": 99.5, "bounds_upper_factor": 1.15, "bounds_cover_percentile": 99.99},
     },
 )
 
@@ -73,5 +73,5 @@ SETTINGS = {
     "model": ("s_init", "lambda_eikonal", "occupancy_grid"),
     "trainer": ("lr_decay_at",),
     "run": ("bounds_k_rule", "bounds_max_materials", "bounds_min_std", "bounds_gmm_restarts", "bounds_upper_percentile",
-            "bounds_upper_factor"),
+            "bounds_upper_factor", "bounds_cover_percentile"),
 }
