@@ -359,10 +359,11 @@ class GMMBounds:
             kept = rng.choice(kept, size=self.max_samples, replace=False)
         self.kept_ = kept
 
-        upper = self._top(float(np.percentile(kept, self.upper_percentile)))
+        percentile = float(np.percentile(kept, self.upper_percentile))
+        upper = self._top(percentile)
         # Fit on values in units of the upper percentile so the sklearn covariance
         # regulariser (1e-6, or min_std squared) means the same whatever the attenuation unit.
-        self.unit_ = float(np.percentile(kept, self.upper_percentile)) or 1.0
+        self.unit_ = percentile or 1.0
         z = (kept / self.unit_).reshape(-1, 1)
         n_unique = np.unique(z).size
         ks = [k for k in range(1, self.max_components + 1) if k <= n_unique]
@@ -429,6 +430,7 @@ class GMMBounds:
         return self._set_boundaries(b)
 
     def _cover(self, kept: np.ndarray) -> float:
+        """The ``cover_percentile`` value of ``kept`` (data units); 0 when the floor is off."""
         return float(np.percentile(kept, self.cover_percentile)) if self.cover_percentile > 0 else 0.0
 
     def _top(self, percentile: float) -> float:
