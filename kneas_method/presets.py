@@ -244,13 +244,14 @@ def resolve(config: RunConfig) -> RunConfig:
         run["bounds_k_rule"] = "bic-valleys"  # a mixture boundary rule was asked for: the procedure's rule that fits mixtures
     config = dataclasses.replace(config, preset=name, procedure=proc.name, **run, num_materials=K, model=model,
                                  datamanager=datamanager, trainer=trainer)
+    if config.bounds_cover_percentile is None:  # a procedure that predates the setting keeps SPEC §4's top bound
+        config = dataclasses.replace(config, bounds_cover_percentile=0.0)
     config = _select_stages(config, proc, surfaces)
     check_tree(config)
     for flag, value in (("--trainer.epochs", trainer.epochs), ("--bounds-max-materials", config.bounds_max_materials),
                         ("--bounds-gmm-restarts", config.bounds_gmm_restarts),
                         ("--bounds-upper-percentile", config.bounds_upper_percentile),
-                        ("--bounds-upper-factor", config.bounds_upper_factor),
-                        ("--bounds-cover-percentile", config.bounds_cover_percentile)):
+                        ("--bounds-upper-factor", config.bounds_upper_factor)):
         if value is None:
             raise ConfigError(f"{flag} is not set, and procedure {proc.name!r} and preset {name!r} leave it unset too; give {flag}")
     if automatic_bounds(config) and config.stages.classical_start is None and trainer.prior_epochs is None:

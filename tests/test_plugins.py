@@ -103,8 +103,10 @@ PLUGIN = textwrap.dedent(
             state.say(f"demo-mark: {self.config.label}")
 
 
+    # settings as a plugin written before bounds_cover_percentile existed gives them: SPEC's top bound applies
     procedure = Procedure(name="demo-proc", description="the paper's, then a mark", stages=("demo-mark",),
-                          settings=PAPER.settings)
+                          settings={**PAPER.settings, "run": {k: v for k, v in PAPER.settings["run"].items()
+                                                              if k != "bounds_cover_percentile"}})
     '''
 )
 
@@ -233,6 +235,7 @@ def test_a_plugin_stage_runs_in_a_procedure(plugin, tmp_path, capsys):
     assert metrics["stages"]["demo-mark"]["step"] == metrics["steps"]  # after training
     # added to the paper's procedure, with its settings from a config file
     saved = json.loads((run_dir / "config.json").read_text())
+    assert saved["bounds_cover_percentile"] == 0.0  # not given by the procedure: SPEC §4's 1.15 x the 99.5th percentile
     saved.update(procedure="paper", add_stages=["demo-mark"], output_dir=str(tmp_path / "b"))
     saved["stages"]["plugins"] = {"demo-mark": {"label": "from the file"}}
     path = tmp_path / "config.json"
