@@ -470,6 +470,52 @@ def test_cli_runs_a_table_then_trains_nothing(tmp_path, fake_prefix, monkeypatch
     assert "15 already complete, 0 to run" in capsys.readouterr().out
 
 
+def test_archive_keeps_the_records_the_page_reads_and_a_table_continues_from_it(tmp_path, fake_prefix, monkeypatch, capsys):
+    from kneas_method.bench import page
+    from kneas_method.cli import bench as cli
+
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    monkeypatch.setattr(cli, "TRAIN_PREFIX", fake_prefix)
+    out, kept, elsewhere = tmp_path / "bench", tmp_path / "kept", tmp_path / "elsewhere"
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["ablation", "--preset", "tiny", "--seeds", "1", "--references", "fdk", "--oracles", "--output-dir", str(out)])
+    assert exc.value.code == 0
+    first = next((out / "cells").iterdir())
+    volume = next(first.glob("*/*/*/")) / "volume.npy"  # what a real run leaves beside its records
+    volume.write_bytes(b"\0" * 4096)
+    running = out / "cells" / "foot__k-neas__K2__vall__s1__tiny"  # a cell of another sitting, still running
+    (running / "foot" / "k-neas" / "20240101-000001").mkdir(parents=True)
+    (running / "cell.json").write_text(json.dumps({"status": "running"}))
+    (running / "foot" / "k-neas" / "20240101-000001" / "config.json").write_text("{}")
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["archive", "--output-dir", str(out), "--to", str(kept)])
+    assert exc.value.code == 0
+    assert "archived 20 records of 5 cells" in capsys.readouterr().out  # cell.json, train.log, config.json, metrics.json
+    assert not list(kept.rglob("*.npy")) and (kept / "ablation.cells.json").is_file() and not (kept / "cells" / running.name).exists()
+    same = page.render(kept).split("\n", 3)[3].replace(str(kept), str(out))
+    assert same == page.render(out).split("\n", 3)[3]  # the same tables, verdicts and counts
+    # another machine: the records copied into a new working folder; the table runs only the cells it lacks
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["archive", "--output-dir", str(kept), "--to", str(elsewhere)])
+    assert exc.value.code == 0
+    calls = len(_calls(log))
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["ablation", "--preset", "tiny", "--seeds", "2", "--references", "fdk", "--oracles", "--output-dir", str(elsewhere)])
+    assert exc.value.code == 0
+    again = _calls(log)[calls:]
+    assert sorted(c["args"][0] for c in again) == sorted(grid.ABLATION_METHODS) and {c["args"][c["args"].index("--seed") + 1] for c in again} == {"1"}
+    # archiving the second sitting into the first's archive keeps both: the manifest is the union
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["archive", "--output-dir", str(elsewhere), "--to", str(kept)])
+    assert exc.value.code == 0
+    assert "9 of 9 cells complete" in page.render(kept)
+    for bad in (["--output-dir", str(tmp_path / "nothing")], ["--output-dir", str(out), "--to", str(out)]):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["archive", *bad])
+        assert exc.value.code != 0 and "Traceback" not in capsys.readouterr().err
+
+
 def test_cli_references_option(tmp_path, fake_prefix, monkeypatch):
     from kneas_method.cli import bench as cli
 
@@ -533,6 +579,34 @@ def test_cli_dry_run_and_user_errors(tmp_path, capsys, monkeypatch):
         assert exc.value.code == 2
         err = capsys.readouterr().err
         assert msg in err and err.count("\n") == 1
+
+
+def test_dry_run_estimates_follow_the_machine_speed_and_cells_measured_here(tmp_path):
+    import torch
+
+    cells = grid.table1(["foot"], (0,), "cpu", ks=(2,), references=("sart",), extra=("--trainer.epochs", "1"), oracles=())
+    neural = next(c for c in cells if c.method == "k-neas")  # one epoch: well inside the time budget
+    sart = next(c for c in cells if c.method == "sart")
+    base, _ = estimate.estimate(neural, "cpu", None, 1.0)
+    half, how = estimate.estimate(neural, "cpu", None, 0.5)
+    assert half == pytest.approx(0.5 * base) and "x 0.50 for this machine" in how
+    cap, how = estimate.estimate(neural, "cpu", None, 100.0)  # a slow machine: the time budget (wall clock) caps a run
+    assert cap < 100.0 * base and "capped by the time budget" in how
+    assert estimate.estimate(sart, "cpu", None, 2.0)[0] == pytest.approx(2.0 * estimate.estimate(sart, "cpu", None, 1.0)[0])
+    assert estimate.estimate(neural, "cpu", {estimate.measured_key(neural): 123.0}, 2.0) == (123.0, "measured here")
+    # measured here: a cell's own wall time (start-up included) where it recorded one; an oracle apart from its method's default
+    ref = grid.table1(["foot"], (0,), "cpu", ks=(2,), references=("sart",), oracles=("sart",))
+    sart_ref, sart_oracle = (next(c for c in ref if c.method == "sart" and c.oracle == o) for o in (False, True))
+    _write_metrics(tmp_path, sart_ref, _m(1, 1, 1, 1), "built-in phantom foot")  # metrics.json wall_time_s 3.0
+    (cell_dir(tmp_path, sart_ref) / "cell.json").write_text(json.dumps({"status": "done", "wall_time_s": 8.0}))
+    _write_metrics(tmp_path, sart_oracle, _m(1, 1, 1, 1), "built-in phantom foot")  # no cell.json: the run's 3.0
+    measured = estimate.measured_here(tmp_path, ref)
+    assert estimate.estimate(sart_ref, "cpu", measured)[0] == 8.0 and estimate.estimate(sart_oracle, "cpu", measured)[0] == 3.0
+    threads = torch.get_num_threads()
+    probe = estimate.probe_seconds(repeats=2)
+    assert 0.0 < probe < 10.0 and torch.get_num_threads() == threads
+    factor, how = estimate.machine_speed("cpu")
+    assert factor > 0 and "CPU figures x" in how and estimate.machine_speed("gpu")[0] == 1.0
 
 
 def test_table_note_says_when_there_is_one_seed():

@@ -9,6 +9,7 @@ workers, Ray), skips complete cells, and aggregates the tables.
 - :mod:`.paper_results`: the paper's published numbers.
 - :mod:`.estimate`: dry-run cost estimates.
 - :mod:`.page`: the results page (``kneas-bench page``): the tables run, the paper's beside, a verdict per claim.
+- :mod:`.archive`: the tables' records without their volumes (``kneas-bench archive``), to keep or to continue elsewhere.
 """
 
 from .grid import Cell

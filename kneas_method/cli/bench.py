@@ -19,6 +19,7 @@ Examples::
     kneas-bench table1 --references fdk sart                      # only these classical reference rows
     kneas-bench table1 --references                               # no classical reference rows
     kneas-bench page --output-dir outputs/bench                   # docs/paper_tables.md: every table run there, verdicts
+    kneas-bench archive --output-dir outputs/bench --to benchmarks/results/paper   # the records only, to keep or move
 """
 
 from __future__ import annotations
@@ -128,14 +129,27 @@ class Page:
     """where the page goes (Markdown)"""
 
 
+@dataclass
+class Archive:
+    """Keep the tables' results without their volumes: copy the manifests and every cell's records (cell.json, train.log, each run's JSON files) from OUTPUT_DIR to TO.
+
+    TO is an output folder too: the page reads it, and copied back (kneas-bench archive --output-dir TO --to outputs/bench)
+    a table continues there, running only the cells it lacks."""
+
+    output_dir: str = "outputs/bench"
+    """the folder the tables ran in"""
+    to: str = "benchmarks/results/paper"
+    """where the records go (cells and manifests already there are kept; each manifest becomes the union of both)"""
+
+
 # How a cell starts kneas-train (tests replace it with a stand-in trainer).
 TRAIN_PREFIX: tuple[str, ...] = ()  # () = kneas_method.bench.grid.DEFAULT_TRAIN_PREFIX
 
-SUBCOMMANDS = {"table1": Table1(), "views": Views(), "ablation": Ablation(), "grid": Grid(), "page": Page()}
+SUBCOMMANDS = {"table1": Table1(), "views": Views(), "ablation": Ablation(), "grid": Grid(), "page": Page(), "archive": Archive()}
 LAYOUT = {Table1: "table1", Views: "views", Ablation: "ablation", Grid: "grid"}
 
 
-def parse_args(argv: Sequence[str]) -> "_Common | Page":
+def parse_args(argv: Sequence[str]) -> "_Common | Page | Archive":
     from .common import tyro_cli
 
     descriptions = {k: (type(v).__doc__ or "").strip() for k, v in SUBCOMMANDS.items()}
@@ -182,6 +196,7 @@ def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
 
     kind = estimate.device_kind()
     measured = estimate.measured_here(output_dir, cells)
+    speed, speed_how = estimate.machine_speed(kind)
     t = Table(title=f"kneas-bench {LAYOUT[type(args)]} — {len(cells)} cells (dry run)")
     for col in ("scene", "method", "K", "views", "seed", "status", "estimate", "how estimated"):
         t.add_column(col, overflow="fold")
@@ -192,7 +207,7 @@ def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
             continue
         rec = read_cell_record(output_dir, c)
         status = "to run" + (f" (last: {rec.get('status')})" if rec else "")
-        secs, how = estimate.estimate(c, kind, measured)
+        secs, how = estimate.estimate(c, kind, measured, speed)
         todo += 1
         if secs is None:
             unknown += 1
@@ -202,8 +217,8 @@ def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
     console.print(t)
     console.print(f"{todo} of {len(cells)} cells to run; estimated {estimate.format_seconds(total)} of {kind.upper()} time run one after "
                   f"another{f' ({unknown} without an estimate)' if unknown else ''}. Estimates: seconds per training step measured once per "
-                  "preset (kneas_method/bench/estimate.py) x views x (epochs + prior epochs) + a per-run overhead, or the median wall time "
-                  "of cells already complete here.")
+                  "preset (kneas_method/bench/estimate.py) x views x (epochs + prior epochs) + a per-run overhead, scaled by this machine's "
+                  f"speed ({speed_how}), or the median wall time of cells already complete here.")
     return 0
 
 
@@ -284,6 +299,22 @@ def write_page(args: Page) -> int:
     return 0
 
 
+def write_archive(args: Archive) -> int:
+    from ..bench.archive import archive
+    from ..engine.run_dir import check_writable
+
+    source, target = Path(args.output_dir), Path(args.to)
+    if not (source / "cells").is_dir():
+        raise ConfigError(f"{source} holds no cells (no {source}/cells); pass the folder a table ran in (--output-dir DIR)")
+    if source.resolve() == target.resolve():
+        raise ConfigError(f"--output-dir and --to are the same folder ({source}); pass another --to")
+    check_writable(target, needed_bytes=0, flag="--to")
+    done = archive(source, target)
+    console.print(f"archived {done.files} records of {done.cells} cells ({done.bytes / 1e6:.1f} MB) from {source} to {target}; "
+                  f"{done.skipped} files left behind (volumes, checkpoints, meshes)")
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> None:
     """Console entry point ``kneas-bench``."""
 
@@ -292,7 +323,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
 
         _sigterm_as_interrupt()
         args = parse_args(sys.argv[1:] if argv is None else argv)
-        return write_page(args) if isinstance(args, Page) else run(args)
+        if isinstance(args, Page):
+            return write_page(args)
+        return write_archive(args) if isinstance(args, Archive) else run(args)
 
     run_cli(body)
 

@@ -1,0 +1,76 @@
+"""Keeping a table's results without its volumes: ``kneas-bench archive``.
+
+A table's output folder holds every cell's volumes and checkpoints (hundreds of
+MB); the tables and the results page need only the records: the manifests
+(``table1.cells.json``, ...), each cell's ``cell.json`` and ``train.log``, and
+each run's JSON files (``metrics.json``, ``config.json``, ``bounds.json``, ...).
+:func:`archive` copies those from one output folder to another. The copy is
+itself an output folder: ``kneas-bench page`` reads it, and copied back into a
+working folder it lets a table continue on another machine, since a cell with a
+``metrics.json`` is complete and never runs again.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from .cells import CELLS
+from .page import LAYOUTS, add_to_manifest, manifest_path, read_manifest
+
+RECORD_SUFFIXES = (".json", ".log")
+# A record larger than this is not a record (a run's JSON and logs are a few KB); it stays behind.
+MAX_RECORD_BYTES = 1 << 20
+
+
+@dataclass
+class ArchiveResult:
+    cells: int  # cell folders with at least one record copied
+    files: int  # files copied
+    bytes: int
+    skipped: int  # files left behind (volumes, checkpoints, meshes, oversized records)
+
+
+def is_record(path: Path) -> bool:
+    return path.suffix in RECORD_SUFFIXES and path.stat().st_size <= MAX_RECORD_BYTES
+
+
+def _running(folder: Path) -> bool:
+    try:
+        return json.loads((folder / "cell.json").read_text(encoding="utf-8")).get("status") == "running"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def archive(source: str | Path, target: str | Path) -> ArchiveResult:
+    """Copy the manifests and the records of every cell under ``source`` that is not running to ``target``.
+
+    A record already in ``target`` is replaced by ``source``'s; cells only in
+    ``target`` are kept, and each manifest in ``target`` becomes the union of both
+    (so archiving the cells of several sittings, or machines, into one folder
+    keeps every table whole).
+    """
+    source, target = Path(source), Path(target)
+    cells = files = size = skipped = 0
+    for layout in LAYOUTS:
+        if manifest_path(source, layout).is_file():
+            add_to_manifest(target, layout, read_manifest(source, layout) or [])
+    root = source / CELLS
+    for folder in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
+        if _running(folder):  # a cell still running has no result yet; its half-written log is not one
+            continue
+        copied = 0
+        for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+            if not is_record(path):
+                skipped += 1
+                continue
+            dest = target / path.relative_to(source)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, dest)
+            copied += 1
+            size += path.stat().st_size
+        cells += copied > 0
+        files += copied
+    return ArchiveResult(cells, files, size, skipped)
