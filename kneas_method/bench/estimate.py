@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from .. import presets
+from .aggregate import _float
 from .cells import cell_dir, find_metrics, read_cell_record
 from .grid import ORACLE_ITERATIONS, REFERENCE_METHODS, Cell, is_reference
 
@@ -90,7 +91,7 @@ PROBE_REPEATS = 7
 PROBE_REFERENCE_S = 0.021  # 2026-12-04, 2 cores, quiet (the probe on one of them)
 
 
-def uses_bounds(cell: Cell, preset: str) -> bool:
+def uses_bounds(cell: Cell) -> bool:
     """Whether the cell's run estimates bounds (on its prior, or on the classical start)."""
     return cell.method not in PRIOR_METHODS_NO
 
@@ -207,13 +208,6 @@ def measured_key(cell: Cell) -> tuple:
     return (cell.method, cell.preset, cell.views, cell.oracle)
 
 
-def _float(value) -> Optional[float]:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return None
-
-
 def probe_seconds(repeats: int = PROBE_REPEATS) -> float:
     """Seconds of a fixed piece of work shaped as a ``cpu``-preset training step: the preset's hash grid and
     a 32-wide MLP, forward and backward, on :data:`PROBE_POINTS` points (the median of ``repeats`` runs,
@@ -290,7 +284,7 @@ def _formula(cell: Cell, kind: Optional[str], speed: float) -> tuple[Optional[fl
     if "correction" in stages and kind == "cpu":
         seconds += CORRECTION_S
         how += f" + {CORRECTION_S:g} s of correction passes"
-    if uses_bounds(cell, preset) and "classical-start" in stages:  # the mixtures fitted on the start's histogram
+    if uses_bounds(cell) and "classical-start" in stages:  # the mixtures fitted on the start's histogram
         seconds += BOUNDS_S
         how += f" + {BOUNDS_S:g} s of bounds"
     seconds *= speed
