@@ -488,11 +488,16 @@ def test_archive_keeps_the_records_the_page_reads_and_a_table_continues_from_it(
     (running / "foot" / "k-neas" / "20240101-000001").mkdir(parents=True)
     (running / "cell.json").write_text(json.dumps({"status": "running"}))
     (running / "foot" / "k-neas" / "20240101-000001" / "config.json").write_text("{}")
+    stopped = out / "cells" / "foot__k-neas__K3__vall__s1__tiny"  # interrupted after its helper prior run finished
+    (stopped / "foot" / "neas-1m-prior" / "abc").mkdir(parents=True)
+    (stopped / "foot" / "neas-1m-prior" / "abc" / "metrics.json").write_text("{}")
+    (stopped / "cell.json").write_text(json.dumps({"status": "interrupted", "cell": {"method": "k-neas"}}))
     with pytest.raises(SystemExit) as exc:
         cli.main(["archive", "--output-dir", str(out), "--to", str(kept)])
     assert exc.value.code == 0
     assert "archived 20 records of 5 cells" in capsys.readouterr().out  # cell.json, train.log, config.json, metrics.json
     assert not list(kept.rglob("*.npy")) and (kept / "ablation.cells.json").is_file() and not (kept / "cells" / running.name).exists()
+    assert not (kept / "cells" / stopped.name).exists()  # an interrupted cell's partial records stay behind
     same = page.render(kept).split("\n", 3)[3].replace(str(kept), str(out))
     assert same == page.render(out).split("\n", 3)[3]  # the same tables, verdicts and counts
     # another machine: the records copied into a new working folder; the table runs only the cells it lacks

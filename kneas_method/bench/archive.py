@@ -12,12 +12,11 @@ working folder it lets a table continue on another machine, since a cell with a
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from .cells import CELLS
+from .cells import CELLS, is_finished
 from .page import LAYOUTS, add_to_manifest, manifest_path, read_manifest
 
 RECORD_SUFFIXES = (".json", ".log")
@@ -37,15 +36,8 @@ def is_record(path: Path) -> bool:
     return path.suffix in RECORD_SUFFIXES and path.stat().st_size <= MAX_RECORD_BYTES
 
 
-def _running(folder: Path) -> bool:
-    try:
-        return json.loads((folder / "cell.json").read_text(encoding="utf-8")).get("status") == "running"
-    except (OSError, ValueError, AttributeError):
-        return False
-
-
 def archive(source: str | Path, target: str | Path) -> ArchiveResult:
-    """Copy the manifests and the records of every cell under ``source`` that is not running to ``target``.
+    """Copy the manifests and the records of every finished cell under ``source`` to ``target``.
 
     A record already in ``target`` is replaced by ``source``'s; cells only in
     ``target`` are kept, and each manifest in ``target`` becomes the union of both
@@ -59,7 +51,7 @@ def archive(source: str | Path, target: str | Path) -> ArchiveResult:
             add_to_manifest(target, layout, read_manifest(source, layout) or [])
     root = source / CELLS
     for folder in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
-        if _running(folder):  # a cell still running has no result yet; its half-written log is not one
+        if not is_finished(folder):  # a running or interrupted cell's records are partial: it reruns or resumes
             continue
         copied = 0
         for path in sorted(p for p in folder.rglob("*") if p.is_file()):

@@ -174,10 +174,29 @@ def mark_interrupted(output_dir: str | Path, cell: Cell) -> None:
 
 
 def read_cell_record(output_dir: str | Path, cell: Cell) -> Optional[dict]:
-    path = cell_dir(output_dir, cell) / "cell.json"
+    return read_record(cell_dir(output_dir, cell))
+
+
+def read_record(folder: str | Path) -> Optional[dict]:
+    """A cell folder's ``cell.json``, or None when it is missing or unreadable."""
+    path = Path(folder) / "cell.json"
     if not path.is_file():
         return None
     try:
         return read_json(path, "cell record")
     except Exception:
         return None
+
+
+def is_finished(folder: str | Path) -> bool:
+    """The cell in ``folder`` ran to an end: its method's run has a ``metrics.json``, or its record says it failed.
+
+    A running or interrupted cell is not finished: its records are partial, and a
+    rerun starts or resumes it.
+    """
+    record = read_record(folder)
+    if not isinstance(record, dict):
+        return False
+    cell = record.get("cell")
+    method = cell.get("method") if isinstance(cell, dict) else None
+    return record.get("status") == "failed" or (method is not None and find_metrics(folder, method) is not None)
