@@ -7,6 +7,8 @@
         --threads 2 --out benchmarks/results/classical_cpu.json
     python benchmarks/classical.py --scenes foot,jaw --runs "asd-pocs:iterations=40" --trace   # every count 1..40
     python benchmarks/classical.py --scenes abdomen --runs "cgls:iterations=30" --dice --shells   # also with shells relabelled
+    python benchmarks/classical.py --scenes data/real/ts-chest-noisy.pickle --runs "sart:iterations=40" --trace --smooth
+    python benchmarks/classical.py --scenes data/real/ts-chest.pickle --runs "sart:iterations=40" --trace --init truth-classes
 
 A run is ``algorithm[:key=value,...]`` (``fdk``, ``sart``, ``os-sart``, ``cgls``,
 ``asd-pocs`` with fields of ``ReconstructionOptions``: ``iterations``, ``relaxation``,
@@ -78,6 +80,57 @@ def per_material_chamfer(metrics: dict) -> dict:
     return {name: round(m["chamfer_mm"], 3) for name, m in metrics["materials"].items() if m.get("chamfer_mm") is not None}
 
 
+def start_volume(spec, scene, box):
+    """``--init``: None, a .npy volume on the scene's grid, or ``truth-classes`` (the true volume, each
+    labelled class at its mean value); a mistake is one line."""
+    import numpy as np
+
+    if spec is None:
+        return None
+    if box.scene is not scene and tuple(box.scene.geometry.n_voxel) != tuple(scene.geometry.n_voxel):
+        raise SystemExit(f"error: --init gives a volume on the scene's grid, and scene {scene.name!r} is fitted on a longer box; "
+                         "leave --init out for it")
+    if spec == "truth-classes":
+        if scene.image is None or scene.labels is None:
+            raise SystemExit(f"error: --init truth-classes needs the scene's true volume and labels, and {scene.name!r} has none")
+        volume = np.zeros_like(scene.image, dtype=np.float32)
+        for k in np.unique(scene.labels):
+            inside = scene.labels == k
+            volume[inside] = scene.image[inside].mean()
+        return volume
+    try:
+        volume = np.load(spec).astype(np.float32)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"error: --init {spec!r} is not a readable .npy volume ({exc}); give a volume of the scene's grid or truth-classes")
+    if volume.shape != tuple(scene.geometry.n_voxel):
+        raise SystemExit(f"error: --init {spec!r} has shape {volume.shape}, the scene's grid is {tuple(scene.geometry.n_voxel)}")
+    return volume
+
+
+def smoothed_rows(box, scene, volume, best: dict, device) -> dict:
+    """``smoothed`` (and, where ``best`` holds the best count's volume, ``smoothed_best``): psnr3d /
+    ssim3d of the run's volume [nx, ny, nz] (on the fitting ``box``) after k-neas's smoothing, with the
+    filter it chose."""
+    import numpy as np
+    from kneas_method.classical.projector import Projector
+    from kneas_method.evaluation.metrics import psnr3d, ssim3d
+    from kneas_method.stages.smoothing import smooth_against_views
+
+    fit = box.scene
+    projections = torch.as_tensor(np.asarray(fit.train.projections, dtype=np.float32), device=device)
+    projector = Projector(fit.geometry, fit.train.angles, device=device)
+    out = {}
+    for key, v, extra in (("smoothed", volume, {}), ("smoothed_best", best.get("volume"), {"iteration": best.get("iteration")})):
+        if v is None:
+            continue
+        smoothed, choice = smooth_against_views(torch.as_tensor(np.asarray(v), dtype=torch.float32, device=device), projections,
+                                                projector)
+        s = box.crop(smoothed.clamp_min(0).cpu().numpy())
+        out[key] = {**extra, "filter": choice.label, "psnr3d": round(psnr3d(s, scene.image), 4),
+                    "ssim3d": round(ssim3d(s, scene.image), 4)}
+    return out
+
+
 def main(argv=None) -> int:
     sys.path.insert(0, str(HERE))
     import numpy as np
@@ -106,6 +159,12 @@ def main(argv=None) -> int:
                     "the same keys ending in _shells")
     ap.add_argument("--trace", action="store_true", help="score the volume after every iteration (psnr3d / ssim3d) and "
                     "report the best iteration count of each run; needs ground truth")
+    ap.add_argument("--smooth", action="store_true", help="also score the volume after the smoothing k-neas's smoothing stage "
+                    "applies (SURE's filter, checked against the views: stages.smoothing.smooth_against_views), and with --trace "
+                    "the best count's volume smoothed the same way: smoothed and smoothed_best in the JSON; needs ground truth")
+    ap.add_argument("--init", default=None, help="start every iterative run from this volume instead of zeros: a .npy on the "
+                    "scene's grid (a run's asd-pocs_volume.npy, kneas-export volume's attenuation.npy), or 'truth-classes', "
+                    "the true volume with each of its labelled classes at its mean value (a perfect K-material prior)")
     ap.add_argument("--out", default=None, help="JSON file to write (default: none)")
     ap.add_argument("--append", action="store_true", help="add the rows (and the command) to an existing --out file")
     args = ap.parse_args(argv)
@@ -127,9 +186,10 @@ def main(argv=None) -> int:
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         scene = scene_from_spec(spec)
         box = fitting_scene(scene, say=say)
-        if args.trace and scene.image is None:
-            raise SystemExit(f"error: --trace scores each iteration against the ground truth, and scene {spec!r} has none; "
-                             "drop --trace for this scene")
+        if (args.trace or args.smooth) and scene.image is None:
+            raise SystemExit(f"error: --trace and --smooth score volumes against the ground truth, and scene {spec!r} has none; "
+                             "drop them for this scene")
+        init = start_volume(args.init, scene, box)
         for name, kwargs in runs:
             residuals = []
             load0 = os.getloadavg()[0]
@@ -138,13 +198,17 @@ def main(argv=None) -> int:
             except TypeError as exc:
                 raise SystemExit(f"error: run {name}:{kwargs}: {exc}; use fields of ReconstructionOptions") from None
             trace = []
+            best = {}  # with --smooth: the best count's volume on the fitting box
 
             def score(i, x, name=name):
-                v = box.crop((x.clamp(min=0.0) if name == "asd-pocs" else x).detach().cpu().numpy())
+                x = x.clamp(min=0.0) if name == "asd-pocs" else x
+                v = box.crop(x.detach().cpu().numpy())
                 trace.append({"iteration": i, "psnr3d": round(psnr3d(v, scene.image), 4),
                               "ssim3d": round(ssim3d(v, scene.image), 4)})
+                if args.smooth and (not best or trace[-1]["psnr3d"] > best["psnr3d"]):
+                    best.update(psnr3d=trace[-1]["psnr3d"], iteration=i, volume=x.detach().clone())
 
-            rec = reconstruct(name, box.scene, options, device=args.device,
+            rec = reconstruct(name, box.scene, options, device=args.device, init=None if name == "fdk" else init,
                               progress=lambda i, n, r: residuals.append(r), iterates=score if args.trace else None)
             vol, seconds = np.ascontiguousarray(box.crop(np.asarray(rec.volume))), rec.seconds
             load1 = os.getloadavg()[0]
@@ -155,9 +219,13 @@ def main(argv=None) -> int:
                 "residual": residuals[-1] if residuals else None, "residuals": residuals,
                 "load_avg_1m": [round(load0, 2), round(load1, 2)],
             }
+            if init is not None and name != "fdk":
+                row["init"] = {"volume": args.init, "psnr3d": round(psnr3d(init, scene.image), 4) if scene.image is not None else None}
             if trace:
                 row["trace"] = trace
                 row["best"] = max(trace, key=lambda t: t["psnr3d"])
+            if args.smooth:
+                row.update(smoothed_rows(box, scene, rec.volume, best, args.device))
             if args.dice and scene.labels is not None:
                 cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
                 for tail, shells in [("", False)] + ([("_shells", True)] if args.shells else []):
@@ -179,7 +247,9 @@ def main(argv=None) -> int:
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
                   f"{row['ssim3d'] or float('nan'):7.3f} {seconds:8.1f} {row['residual'] or float('nan'):8.4f} {load0:4.1f}/{load1:4.1f}"
                   + (f"  dice {row['dice']}" if "dice" in row else "")
-                  + (f"  best psnr3d {row['best']['psnr3d']:.2f} at {row['best']['iteration']} iterations" if "best" in row else ""),
+                  + (f"  best psnr3d {row['best']['psnr3d']:.2f} at {row['best']['iteration']} iterations" if "best" in row else "")
+                  + "".join(f"  {k} ({row[k]['filter']}) {row[k]['psnr3d']:.2f} / {row[k]['ssim3d']:.3f}"
+                            for k in ("smoothed", "smoothed_best") if k in row),
                   flush=True)
     if args.out:
         path = Path(args.out)
@@ -197,7 +267,9 @@ def main(argv=None) -> int:
                        "class was matched to has Dice 0 and no Chamfer; keys ending in _shells: the same with the partial-volume shells "
                        "relabelled first (--shells)" if args.dice else "")
                     + ("; trace: psnr3d / ssim3d after every iteration (the seconds include scoring them); best: its "
-                       "highest psnr3d" if args.trace else ""),
+                       "highest psnr3d" if args.trace else "")
+                    + ("; smoothed / smoothed_best: the run's volume / the best count's volume after k-neas's smoothing "
+                       "stage's filter (SURE, checked against the views), its label and psnr3d / ssim3d" if args.smooth else ""),
             "rows": [],
         }
         if args.append and path.is_file():

@@ -96,3 +96,74 @@ def test_kneas_eval_scores_dice_and_chamfer_against_the_hu_tissues(tmp_path, cap
     # the classical volume's brightest class is matched to bone, and its surface lies near the threshold's
     assert materials["bone"]["predicted_materials"] and 0.0 < materials["bone"]["dice"]
     assert materials["bone"]["chamfer_mm"] is not None and 0.0 < materials["bone"]["chamfer_mm"] < 10.0
+
+
+def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_its_volume(tmp_path):
+    """benchmarks/classical.py --trace --smooth: the run's volume and its best count's volume after the
+    smoothing stage's own filter (stages.smoothing.smooth_against_views), scored as the run is."""
+    import dataclasses
+
+    import classical
+    import torch
+
+    from kneas_method.classical.iterative import sart
+    from kneas_method.classical.projector import Projector
+    from kneas_method.evaluation.metrics import psnr3d
+    from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
+    from kneas_method.stages.smoothing import smooth_against_views
+
+    scene, _, thresholds = crop_scene()
+    noisy = simulate_from_volume(scene.image, dataclasses.replace(SimulationConfig(n_detector=32, n_train=8, n_val=4), noise=True),
+                                 voxel_mm=3.0, name="crop-noisy", meta=dict(scene.meta))
+    noisy.labels = scene.labels
+    path = save_naf(noisy, tmp_path / "crop-noisy.pickle")
+    out = tmp_path / "bar.json"
+    assert classical.main(["--scenes", str(path), "--runs", "sart:iterations=6", "--trace", "--smooth", "--out", str(out)]) == 0
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["smoothed_best"]["iteration"] == row["best"]["iteration"]
+    # the oracle: the same six SART sweeps smoothed by hand
+    loaded = load_naf(path)
+    volume = sart(loaded.train.projections, loaded.geometry, loaded.train.angles, iterations=6)
+    projector = Projector(loaded.geometry, loaded.train.angles)
+    smoothed, choice = smooth_against_views(torch.as_tensor(volume), torch.as_tensor(loaded.train.projections), projector)
+    assert row["smoothed"]["filter"] == choice.label
+    assert row["smoothed"]["psnr3d"] == pytest.approx(psnr3d(smoothed.clamp_min(0).numpy(), loaded.image), abs=1e-3)
+    assert row["psnr3d"] == pytest.approx(psnr3d(volume, loaded.image), abs=1e-3)
+
+
+def test_the_classical_bar_refuses_to_smooth_a_scene_without_truth(tmp_path):
+    import classical
+
+    scene, _, _ = crop_scene()
+    scene.image = None
+    scene.labels = None
+    path = save_naf(scene, tmp_path / "no-truth.pickle")
+    with pytest.raises(SystemExit, match="ground truth"):
+        classical.main(["--scenes", str(path), "--runs", "sart:iterations=2", "--smooth"])
+
+
+def test_the_classical_bar_starts_from_a_given_volume_or_the_truths_classes(tmp_path):
+    import classical
+
+    from kneas_method.classical.iterative import sart
+    from kneas_method.evaluation.metrics import psnr3d
+
+    scene, _, _ = crop_scene()
+    path = save_naf(scene, tmp_path / "crop.pickle")
+    loaded = load_naf(path)
+    classes = np.zeros_like(loaded.image)
+    for k in np.unique(loaded.labels):  # the naive version: every labelled class at its mean
+        classes[loaded.labels == k] = loaded.image[loaded.labels == k].mean()
+    np.save(tmp_path / "start.npy", classes)
+    rows = {}
+    for spec in ("truth-classes", str(tmp_path / "start.npy")):
+        out = tmp_path / "bar.json"
+        assert classical.main(["--scenes", str(path), "--runs", "sart:iterations=3", "--trace", "--init", spec, "--out", str(out)]) == 0
+        rows[spec] = json.loads(out.read_text())["rows"][0]
+    by_hand = sart(loaded.train.projections, loaded.geometry, loaded.train.angles, iterations=3, init=classes)
+    for row in rows.values():
+        assert row["init"]["psnr3d"] == pytest.approx(psnr3d(classes, loaded.image), abs=1e-3)
+        assert row["psnr3d"] == pytest.approx(psnr3d(by_hand, loaded.image), abs=1e-3)
+    np.save(tmp_path / "wrong.npy", classes[:-1])
+    with pytest.raises(SystemExit, match="shape"):
+        classical.main(["--scenes", str(path), "--runs", "sart:iterations=1", "--init", str(tmp_path / "wrong.npy")])

@@ -53,15 +53,18 @@ def algorithm_settings(algorithm: str, options: ReconstructionOptions, n_views: 
 
 def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] = None, *, device="cpu",
                 progress: Optional[Callable[[int, int, float], None]] = None,
-                iterates: Optional[Callable[[int, "torch.Tensor"], None]] = None) -> Reconstruction:
+                iterates: Optional[Callable[[int, "torch.Tensor"], None]] = None, init=None) -> Reconstruction:
     """Reconstruct ``scene``'s training views with ``algorithm`` (one of :data:`ALGORITHMS`).
 
     ``progress(iteration, total, residual)`` is called by the iterative methods after each iteration
     (``residual``: relative data residual ‖Ax − b‖ / ‖b‖), and ``iterates(iteration, x)`` with the
-    current volume tensor (read-only; FDK has no iterations and calls neither)."""
+    current volume tensor (read-only; FDK has no iterations and calls neither). ``init``: the iterative
+    methods' start volume [nx, ny, nz] (data units; None: zeros); FDK takes none."""
     options = options or ReconstructionOptions()
     if algorithm not in ALGORITHMS:
         raise ConfigError(f"classical algorithm {algorithm!r} is not known; use one of {', '.join(ALGORITHMS)}")
+    if algorithm == "fdk" and init is not None:
+        raise ConfigError("FDK is not iterative, so it takes no start volume; leave init out for fdk")
     settings = algorithm_settings(algorithm, options, len(scene.train))
     if "backprojector" in settings:  # record the one "auto" picks for this geometry
         from .iterative import choose_backprojector
@@ -80,6 +83,6 @@ def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] 
             s.update(n_tv=s.pop("tv_steps"), alpha=s.pop("tv_alpha"))
         function = iterative.ALGORITHMS[algorithm]
         volume = function(scene.train.projections, scene.geometry, scene.train.angles, device=device, progress=progress,
-                          iterates=iterates, **s)
+                          iterates=iterates, init=init, **s)
     return Reconstruction(np.asarray(volume, dtype=np.float32), time.perf_counter() - t0,
                           {"algorithm": algorithm, **settings, "views": len(scene.train)})

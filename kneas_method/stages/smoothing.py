@@ -49,11 +49,27 @@ class SmoothingConfig(StageConfig):
         return "smoothing: the volume smoothed as far as SURE says its noise allows (nothing on a clean scan), the model fitted to it"
 
 
+def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projector, rule: SmoothingRule = "sure"):
+    """``volume`` [nx, ny, nz] smoothed as the smoothing stage smooths a model's volume: the filter SURE
+    prefers (``rule``), its noise estimate raised while the smoothed volume's projections still fit
+    ``projections`` [N, nV, nU] closer than their noise (``denoise.discrepancy_smoothing``; the noise
+    from the volume's own residual, ``band_correction.noise_variance``). ``projector`` projects a volume
+    at the views' angles (``classical.projector.Projector``). Returns ``(smoothed, denoise.Denoising)``;
+    a classical volume gets the same treatment this way (``benchmarks/classical.py --smooth``)."""
+    from .band_correction import noise_variance
+    from .denoise import BILATERALS, discrepancy_smoothing
+
+    def misfit(v: torch.Tensor) -> float:
+        r = projections - projector.forward(v.clamp_min(0))
+        return float((r * r).mean())
+
+    data_noise = noise_variance(projections - projector.forward(volume))
+    return discrepancy_smoothing(volume, misfit, data_noise, bilaterals=BILATERALS if rule == "sure" else ())
+
+
 class Smoothing(Stage):
     def run(self, state: RunState) -> None:
         from ..classical.projector import Projector
-        from .band_correction import noise_variance
-        from .denoise import BILATERALS, discrepancy_smoothing
 
         c, trainer, scene = self.config, state.trainer, state.scene
         if state.records.get(self.name) is not None:
@@ -64,14 +80,7 @@ class Smoothing(Stage):
         projections = torch.as_tensor(scene.train.projections, dtype=torch.float32, device=volume.device)
         if 1 not in state.projectors:
             state.projectors[1] = Projector(scene.geometry, scene.train.angles, device=volume.device)
-        projector = state.projectors[1]
-
-        def misfit(v: torch.Tensor) -> float:
-            r = projections - projector.forward(v.clamp_min(0))
-            return float((r * r).mean())
-
-        data_noise = noise_variance(projections - projector.forward(volume))
-        smoothed, choice = discrepancy_smoothing(volume, misfit, data_noise, bilaterals=BILATERALS if c.rule == "sure" else ())
+        smoothed, choice = smooth_against_views(volume, projections, state.projectors[1], c.rule)
         if len(choice.misfit) > 1:
             state.say("smoothing: " + "; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise"
                                                 for m, label, r in choice.misfit[:-1])
