@@ -780,3 +780,23 @@ def test_page_without_a_table_is_a_one_line_error(tmp_path, capsys):
         assert "run a table first" in err or "no table has run" in err
         assert "Traceback" not in err
     assert not (tmp_path / "p.md").exists()
+
+
+def test_a_view_count_that_keeps_every_view_shares_the_all_views_cell(tmp_path, fake_prefix, monkeypatch):
+    """Table 2's 50-view cells on a 50-view scene train what Table 1's cells train: they run once."""
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    out = tmp_path / "bench"
+    first = grid.table1(["chest"], (0,), "tiny", ks=(2,), references=("fdk",))
+    backends.LocalBackend().run(first, out, fake_prefix)
+    assert len(_calls(log)) == 3  # neas-2m, k-neas 2M, fdk
+    views = grid.views_table(["chest"], (0,), "tiny", views=(10, 50), references=("fdk",), found_k=False)
+    todo = [c for c in views if not is_complete(out, c)]
+    assert sorted((c.method, c.views) for c in todo) == [("fdk", 10), ("k-neas", 10), ("neas-2m", 10)]
+    shared = next(c for c in views if c.method == "neas-2m" and c.views == 50)
+    assert cell_dir(out, shared) == cell_dir(out, next(c for c in first if c.method == "neas-2m"))
+    backends.LocalBackend().run(todo, out, fake_prefix)
+    assert len(_calls(log)) == 6 and all(is_complete(out, c) for c in views)
+    table = aggregate.views_table(views, aggregate.collect(out, views))
+    assert [r.labels[1] for r in table.rows if not r.reference] == ["10", "50"]
+    assert all(table.rows[1].entries[(m, model)] is not None for m in aggregate.METRICS for model in ("NeAS", "K-NeAS"))
