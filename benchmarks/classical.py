@@ -81,54 +81,67 @@ def per_material_chamfer(metrics: dict) -> dict:
 
 
 def start_volume(spec, scene, box):
-    """``--init``: None, a .npy volume on the scene's grid, or ``truth-classes`` (the true volume, each
-    labelled class at its mean value); a mistake is one line."""
+    """``--init``: None, a .npy volume on the grid the views are fitted on (``box``: the scene's, or
+    longer along the axis where the object goes on beyond it; a run's ``asd-pocs_volume.npy`` is on
+    it), or ``truth-classes`` (the true volume, each labelled class at its mean value); a mistake is one line."""
     import numpy as np
 
     if spec is None:
         return None
-    if box.scene is not scene and tuple(box.scene.geometry.n_voxel) != tuple(scene.geometry.n_voxel):
-        raise SystemExit(f"error: --init gives a volume on the scene's grid, and scene {scene.name!r} is fitted on a longer box; "
-                         "leave --init out for it")
+    grid = tuple(box.scene.geometry.n_voxel)
     if spec == "truth-classes":
         if scene.image is None or scene.labels is None:
-            raise SystemExit(f"error: --init truth-classes needs the scene's true volume and labels, and {scene.name!r} has none")
+            raise SystemExit(f"error: --init truth-classes needs the scene's true volume and labels, and {scene.name!r} has none; "
+                             "give a .npy volume instead")
+        if grid != tuple(scene.geometry.n_voxel):
+            raise SystemExit(f"error: --init truth-classes is on the scene's grid, and {scene.name!r} is fitted on a longer box "
+                             f"{grid}; give a .npy volume of that grid instead")
         volume = np.zeros_like(scene.image, dtype=np.float32)
         for k in np.unique(scene.labels):
             inside = scene.labels == k
             volume[inside] = scene.image[inside].mean()
         return volume
     try:
-        volume = np.load(spec).astype(np.float32)
+        volume = np.load(spec, allow_pickle=False)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"error: --init {spec!r} is not a readable .npy volume ({exc}); give a volume of the scene's grid or truth-classes")
-    if volume.shape != tuple(scene.geometry.n_voxel):
-        raise SystemExit(f"error: --init {spec!r} has shape {volume.shape}, the scene's grid is {tuple(scene.geometry.n_voxel)}")
-    return volume
+        raise SystemExit(f"error: --init {spec!r} could not be read as a .npy volume ({exc}); give a .npy file or truth-classes")
+    if not isinstance(volume, np.ndarray) or volume.shape != grid:
+        what = f"shape {volume.shape}" if isinstance(volume, np.ndarray) else "several arrays (an .npz)"
+        raise SystemExit(f"error: --init {spec!r} has {what}, and {scene.name!r} is fitted on a grid of {grid}; "
+                         "give a .npy volume of that shape, or truth-classes")
+    return volume.astype(np.float32)
 
 
-def smoothed_rows(box, scene, volume, best: dict, device) -> dict:
+def smoothed_rows(box, scene, views: tuple, volume, best: dict, device) -> dict:
     """``smoothed`` (and, where ``best`` holds the best count's volume, ``smoothed_best``): psnr3d /
-    ssim3d of the run's volume [nx, ny, nz] (on the fitting ``box``) after k-neas's smoothing, with the
-    filter it chose."""
-    import numpy as np
-    from kneas_method.classical.projector import Projector
+    ssim3d of the run's volume [nx, ny, nz] (on the fitting ``box``; numpy or a tensor) after k-neas's
+    smoothing, with the filter it chose. ``views``: ``(projections tensor, Projector)`` of the box's
+    training views. The noise is estimated over the whole grid (a classical volume has no empty space
+    set to 0), and the smoothed volume is clamped at 0 as the stage's fit target is."""
     from kneas_method.evaluation.metrics import psnr3d, ssim3d
     from kneas_method.stages.smoothing import smooth_against_views
 
-    fit = box.scene
-    projections = torch.as_tensor(np.asarray(fit.train.projections, dtype=np.float32), device=device)
-    projector = Projector(fit.geometry, fit.train.angles, device=device)
+    projections, projector = views
     out = {}
     for key, v, extra in (("smoothed", volume, {}), ("smoothed_best", best.get("volume"), {"iteration": best.get("iteration")})):
         if v is None:
             continue
-        smoothed, choice = smooth_against_views(torch.as_tensor(np.asarray(v), dtype=torch.float32, device=device), projections,
-                                                projector)
+        v = torch.as_tensor(v, dtype=torch.float32, device=device)
+        smoothed, choice = smooth_against_views(v, projections, projector, mask=torch.ones(v.shape, dtype=torch.bool, device=device))
         s = box.crop(smoothed.clamp_min(0).cpu().numpy())
         out[key] = {**extra, "filter": choice.label, "psnr3d": round(psnr3d(s, scene.image), 4),
                     "ssim3d": round(ssim3d(s, scene.image), 4)}
     return out
+
+
+def training_views(box, device) -> tuple:
+    """``(projections [N, nV, nU] tensor, Projector)`` of the fitting box's training views."""
+    import numpy as np
+    from kneas_method.classical.projector import Projector
+
+    fit = box.scene
+    return (torch.as_tensor(np.asarray(fit.train.projections, dtype=np.float32), device=device),
+            Projector(fit.geometry, fit.train.angles, device=device))
 
 
 def main(argv=None) -> int:
@@ -178,6 +191,9 @@ def main(argv=None) -> int:
     for name, _ in runs:
         if name not in ALGORITHMS:
             raise SystemExit(f"error: unknown algorithm {name!r}; choose from {', '.join(ALGORITHMS)}")
+    if args.init is not None and all(name == "fdk" for name, _ in runs):
+        raise SystemExit("error: --init starts the iterative methods from a volume, and FDK is not iterative; "
+                         "add an iterative run or leave --init out")
 
     rows = []
     header = f"{'scene':9s} {'algorithm':9s} {'settings':44s} {'psnr3d':>7s} {'ssim3d':>7s} {'seconds':>8s} {'residual':>8s} {'load':>9s}"
@@ -186,10 +202,12 @@ def main(argv=None) -> int:
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         scene = scene_from_spec(spec)
         box = fitting_scene(scene, say=say)
-        if (args.trace or args.smooth) and scene.image is None:
-            raise SystemExit(f"error: --trace and --smooth score volumes against the ground truth, and scene {spec!r} has none; "
-                             "drop them for this scene")
+        scoring = [flag for flag, given in (("--trace", args.trace), ("--smooth", args.smooth)) if given]
+        if scoring and scene.image is None:
+            raise SystemExit(f"error: {' and '.join(scoring)} score volumes against the ground truth, and scene {scene.name!r} has "
+                             f"none; leave {' and '.join(scoring)} out for it")
         init = start_volume(args.init, scene, box)
+        views = training_views(box, args.device) if args.smooth else None
         for name, kwargs in runs:
             residuals = []
             load0 = os.getloadavg()[0]
@@ -206,7 +224,7 @@ def main(argv=None) -> int:
                 trace.append({"iteration": i, "psnr3d": round(psnr3d(v, scene.image), 4),
                               "ssim3d": round(ssim3d(v, scene.image), 4)})
                 if args.smooth and (not best or trace[-1]["psnr3d"] > best["psnr3d"]):
-                    best.update(psnr3d=trace[-1]["psnr3d"], iteration=i, volume=x.detach().clone())
+                    best.update(psnr3d=trace[-1]["psnr3d"], iteration=i, volume=x.detach().cpu().clone())
 
             rec = reconstruct(name, box.scene, options, device=args.device, init=None if name == "fdk" else init,
                               progress=lambda i, n, r: residuals.append(r), iterates=score if args.trace else None)
@@ -220,12 +238,13 @@ def main(argv=None) -> int:
                 "load_avg_1m": [round(load0, 2), round(load1, 2)],
             }
             if init is not None and name != "fdk":
-                row["init"] = {"volume": args.init, "psnr3d": round(psnr3d(init, scene.image), 4) if scene.image is not None else None}
+                row["init"] = {"volume": args.init,
+                               "psnr3d": round(psnr3d(box.crop(init), scene.image), 4) if scene.image is not None else None}
             if trace:
                 row["trace"] = trace
                 row["best"] = max(trace, key=lambda t: t["psnr3d"])
             if args.smooth:
-                row.update(smoothed_rows(box, scene, rec.volume, best, args.device))
+                row.update(smoothed_rows(box, scene, views, rec.volume, best, args.device))
             if args.dice and scene.labels is not None:
                 cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
                 for tail, shells in [("", False)] + ([("_shells", True)] if args.shells else []):
@@ -244,6 +263,8 @@ def main(argv=None) -> int:
                     row["chamfer_mm_cpu_rule" + tail] = per_material_chamfer(mv)
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
+            if "init" in row:
+                settings += f" from {Path(args.init).name}"
             print(f"{scene.name:9s} {name:9s} {settings:44s} {row['psnr3d'] or float('nan'):7.2f} "
                   f"{row['ssim3d'] or float('nan'):7.3f} {seconds:8.1f} {row['residual'] or float('nan'):8.4f} {load0:4.1f}/{load1:4.1f}"
                   + (f"  dice {row['dice']}" if "dice" in row else "")

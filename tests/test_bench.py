@@ -783,20 +783,29 @@ def test_page_without_a_table_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_a_view_count_that_keeps_every_view_shares_the_all_views_cell(tmp_path, fake_prefix, monkeypatch):
-    """Table 2's 50-view cells on a 50-view scene train what Table 1's cells train: they run once."""
+    """Table 2's 50-view cells on a 50-view scene train what Table 1's cells train: they run once, in either
+    order; the manifest records the shared folder, so the page reads it without the scene file."""
+    from kneas_method.bench import page
+    from kneas_method.bench.cells import own_folders_first
+
     log = tmp_path / "calls.jsonl"
     monkeypatch.setenv("FAKE_LOG", str(log))
     out = tmp_path / "bench"
-    first = grid.table1(["chest"], (0,), "tiny", ks=(2,), references=("fdk",))
-    backends.LocalBackend().run(first, out, fake_prefix)
-    assert len(_calls(log)) == 3  # neas-2m, k-neas 2M, fdk
     views = grid.views_table(["chest"], (0,), "tiny", views=(10, 50), references=("fdk",), found_k=False)
-    todo = [c for c in views if not is_complete(out, c)]
-    assert sorted((c.method, c.views) for c in todo) == [("fdk", 10), ("k-neas", 10), ("neas-2m", 10)]
-    shared = next(c for c in views if c.method == "neas-2m" and c.views == 50)
-    assert cell_dir(out, shared) == cell_dir(out, next(c for c in first if c.method == "neas-2m"))
-    backends.LocalBackend().run(todo, out, fake_prefix)
-    assert len(_calls(log)) == 6 and all(is_complete(out, c) for c in views)
-    table = aggregate.views_table(views, aggregate.collect(out, views))
+    shared = {(c.method, c.views): c.folder for c in views if c.folder}
+    assert shared == {(m, 50): grid.Cell("chest", m, k, None, 0, "tiny").id for m, k in (("neas-2m", 2), ("k-neas", 2), ("fdk", None))}
+    backends.LocalBackend().run(views, out, fake_prefix)
+    assert len(_calls(log)) == 6
+    page.add_to_manifest(out, "views", views)
+    first = grid.table1(["chest"], (0,), "tiny", ks=(2,), references=("fdk",))
+    assert all(is_complete(out, c) for c in first)  # the 50-view cells' runs are Table 1's cells
+    read = page.read_manifest(out, "views")
+    assert [c.folder for c in read] == [c.folder for c in views]
+    table = aggregate.views_table(read, aggregate.collect(out, read))
     assert [r.labels[1] for r in table.rows if not r.reference] == ["10", "50"]
     assert all(table.rows[1].entries[(m, model)] is not None for m in aggregate.METRICS for model in ("NeAS", "K-NeAS"))
+    # a scene file whose views are not all asked for shares nothing; a cell that ran in its own folder keeps it
+    assert not [c for c in grid.views_table(["chest"], (0,), "tiny", views=(10, 20), found_k=False) if c.folder]
+    (out / "cells" / views[-1].id).mkdir(parents=True, exist_ok=True)
+    kept = own_folders_first(out, views)
+    assert kept[-1].folder is None and [c.folder for c in kept[:-1]] == [c.folder for c in views[:-1]]

@@ -15,7 +15,6 @@ whose run was stopped after its first checkpoint (Ctrl-C, a killed worker) is re
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 import signal
 import subprocess
@@ -32,25 +31,15 @@ CELLS = "cells"
 ERROR_TAIL_LINES = 20
 
 
-@functools.lru_cache(maxsize=None)
-def _training_views(scene: str) -> Optional[int]:
-    """The scene's training views (read once per scene), or None where it cannot be read."""
-    from ..data.scenes import training_view_count
-
-    try:
-        return training_view_count(scene)
-    except Exception:
-        return None
-
-
 def cell_dir(output_dir: str | Path, cell: Cell) -> Path:
-    """``OUT/cells/<id>``. A cell that keeps all of its scene's training views (``--views`` equal to their
-    count) trains exactly what the cell asking for all of them trains (``Scene.subsample_views`` keeps the
-    scene as it is), so the two share that one's folder: Table 2's 50-view cells are Table 1's on a
-    50-view scene, run once."""
-    if cell.views is not None and cell.views == _training_views(cell.scene):
-        cell = dataclasses.replace(cell, views=None)
-    return Path(output_dir) / CELLS / cell.id
+    """``OUT/cells/<folder>``: the cell's own id, or the folder it shares (``Cell.folder``)."""
+    return Path(output_dir) / CELLS / (cell.folder or cell.id)
+
+
+def own_folders_first(output_dir: str | Path, cells: Sequence[Cell]) -> list[Cell]:
+    """``cells``, each that already has a folder of its own under ``output_dir`` (it ran there before it
+    was given a shared one, :attr:`Cell.folder`) keeping that folder, so what it did is not done again."""
+    return [dataclasses.replace(c, folder=None) if c.folder and (Path(output_dir) / CELLS / c.id).is_dir() else c for c in cells]
 
 
 def find_metrics(folder: str | Path, method: Optional[str] = None) -> Optional[Path]:

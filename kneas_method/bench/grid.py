@@ -35,7 +35,7 @@ from __future__ import annotations
 import hashlib
 import re
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
@@ -86,6 +86,10 @@ class Cell:
         extra: extra ``kneas-train`` arguments, passed through verbatim.
         oracle: a classical reference run for :data:`ORACLE_ITERATIONS` iterations with every count
             scored (``--trace``); its row is the best count's volume.
+        folder: the id of the cell whose folder this one shares, or None for its own: a cell that keeps
+            all of its scene's training views trains exactly what the cell asking for all of them trains
+            (``Scene.subsample_views`` keeps the scene as it is), so the grids give it that cell's folder
+            (:func:`share_all_views`) and the manifest records it. Not part of the id or the group.
     """
 
     scene: str
@@ -96,6 +100,7 @@ class Cell:
     preset: str
     extra: tuple[str, ...] = field(default=())
     oracle: bool = False
+    folder: Optional[str] = field(default=None, compare=False)
 
     @property
     def id(self) -> str:
@@ -143,10 +148,11 @@ def seeds_from_count(n: int) -> tuple[int, ...]:
     return tuple(range(n))
 
 
-def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[int]] = (None,)) -> None:
+def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[int]] = (None,)) -> dict[str, int]:
     """Refuse, before any cell runs (and in a dry run), what every cell would fail on: no or
     unknown scenes (neither a file nor a built-in name), an unknown preset, a view count below 1
-    or above a scene's training views."""
+    or above a scene's training views. Returns each scene's training views where view counts were
+    given (for :func:`share_all_views`), else an empty dict."""
     from ..data.scenes import check_scene_spec
     from ..methods import PRESETS
 
@@ -160,13 +166,15 @@ def _check_common(scenes: Sequence[str], preset: str, views: Iterable[Optional[i
     bad = [v for v in views if not (isinstance(v, int) and v >= 1)]
     if bad:
         raise ConfigError(f"view counts must be whole numbers >= 1, got {', '.join(map(str, bad))}")
+    totals: dict[str, int] = {}
     if views:  # a count above a scene's training views would fail in every cell that asks for it
         from ..data.scenes import training_view_count
 
         for scene in scenes:
-            total = training_view_count(scene)
+            total = totals[scene] = training_view_count(scene)
             if max(views) > total:
                 raise ConfigError(f"--views {max(views)} is more than scene {scene}'s {total} training views; choose counts from 1 to {total}")
+    return totals
 
 
 def is_reference(method: str) -> bool:
@@ -218,12 +226,20 @@ def _dedupe(cells: Iterable[Cell]) -> list[Cell]:
     return out
 
 
+def share_all_views(cells: Iterable[Cell], totals: dict[str, int]) -> list[Cell]:
+    """``cells`` with :attr:`Cell.folder` set on each whose view count is all of its scene's training
+    views (``totals``: scene -> count): it shares the folder of the same cell without a view count, so
+    Table 2's 50-view cells on a 50-view scene are Table 1's and run once."""
+    return [replace(c, folder=replace(c, views=None).id) if c.views is not None and c.views == totals.get(c.scene) else c
+            for c in cells]
+
+
 def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
            ks: Sequence[int] = TABLE1_K, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
            extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
     """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``),
     plus one cell per classical reference in ``references`` (empty: none)."""
-    _check_common(scenes, preset, [views])
+    totals = _check_common(scenes, preset, [views])
     extra = tuple(extra)
     cells = []
     for s in scenes:
@@ -235,7 +251,7 @@ def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: S
                     cells.append(Cell(s, f"neas-{k}m", k, views, seed, preset, extra))
                 cells.append(Cell(s, "k-neas", k, views, seed, preset, extra))
     cells += _reference_cells(scenes, [views], references, preset, extra, oracles)
-    return _dedupe(cells)
+    return share_all_views(_dedupe(cells), totals)
 
 
 def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
@@ -245,24 +261,24 @@ def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1
 
     ``found_k`` adds k-neas as a user runs it (no K given: K comes from the bounds), one cell per view count and seed.
     """
-    _check_common(scenes, preset, views)
+    totals = _check_common(scenes, preset, views)
     extra = tuple(extra)
     models = [("neas-2m", 2), ("k-neas", k)] + ([("k-neas", None)] if found_k else [])
     cells = [Cell(s, m, mk, v, seed, preset, extra) for s in scenes for v in views for m, mk in models for seed in seeds]
     cells += _reference_cells(scenes, views, references, preset, extra, oracles)
-    return _dedupe(cells)
+    return share_all_views(_dedupe(cells), totals)
 
 
 def ablation(scenes: Sequence[str] = ("foot",), seeds: Sequence[int] = (0,), preset: str = "auto", k: int = 2,
              methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
              extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
     """Table 3: the four-way ablation with K = 2, plus one cell per classical reference and scene."""
-    _check_common(scenes, preset, [views])
+    totals = _check_common(scenes, preset, [views])
     extra = tuple(extra)
     # a classical method among ``methods`` is a reference (one run, no K), not an ablation variant
     cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods if not is_reference(m) for seed in seeds]
     cells += _reference_cells(scenes, [views], [*references, *filter(is_reference, methods)], preset, extra, oracles)
-    return _dedupe(cells)
+    return share_all_views(_dedupe(cells), totals)
 
 
 def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[int]] = (None,), views: Sequence[Optional[int]] = (None,),
@@ -273,7 +289,7 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
     neas-2m); ``None`` in ``ks`` means the method's default K. The classical references
     (:data:`REFERENCE_METHODS`) are deterministic and run once (the first seed).
     """
-    _check_common(scenes, preset, views)
+    totals = _check_common(scenes, preset, views)
     if not methods:
         raise ConfigError("no methods given; pass e.g. --methods k-neas neas-2m fdk")
     extra = tuple(extra)
@@ -290,7 +306,7 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
                 for k in mk:
                     for seed in (seeds[:1] if is_reference(m) else seeds):
                         cells.append(Cell(s, m, k, v, seed, preset, extra))
-    return _dedupe(cells)
+    return share_all_views(_dedupe(cells), totals)
 
 
 def check_methods(methods: Iterable[str]) -> None:

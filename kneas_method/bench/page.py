@@ -55,10 +55,11 @@ def write_manifest(output_dir: str | Path, layout: str, cells: Sequence[Cell]) -
 
 
 def add_to_manifest(output_dir: str | Path, layout: str, cells: Sequence[Cell]) -> Path:
-    """Add ``cells`` to ``layout``'s manifest (a table grown over several runs keeps every cell it had)."""
-    known = read_manifest(output_dir, layout) or []
-    ids = {c.id for c in known}
-    return write_manifest(output_dir, layout, [*known, *(c for c in cells if c.id not in ids)])
+    """Add ``cells`` to ``layout``'s manifest (a table grown over several runs keeps every cell it had; a cell
+    given again is recorded as given now, its shared folder included)."""
+    given = {c.id: c for c in cells}
+    known = [given.pop(c.id, c) for c in read_manifest(output_dir, layout) or []]
+    return write_manifest(output_dir, layout, [*known, *given.values()])
 
 
 def read_manifest(output_dir: str | Path, layout: str) -> Optional[list[Cell]]:
@@ -68,7 +69,7 @@ def read_manifest(output_dir: str | Path, layout: str) -> Optional[list[Cell]]:
         return None
     data = read_json(path, "table manifest")
     return [Cell(d["scene"], d["method"], d.get("k"), d.get("views"), int(d["seed"]), d["preset"], tuple(d.get("extra") or ()),
-                 bool(d.get("oracle", False))) for d in data.get("cells", [])]
+                 bool(d.get("oracle", False)), d.get("folder")) for d in data.get("cells", [])]
 
 
 # ---------------------------------------------------------------------------- scenes and rows

@@ -84,5 +84,6 @@ def reconstruct(algorithm: str, scene, options: Optional[ReconstructionOptions] 
         function = iterative.ALGORITHMS[algorithm]
         volume = function(scene.train.projections, scene.geometry, scene.train.angles, device=device, progress=progress,
                           iterates=iterates, init=init, **s)
+    started = {} if init is None else {"init": "a given volume"}
     return Reconstruction(np.asarray(volume, dtype=np.float32), time.perf_counter() - t0,
-                          {"algorithm": algorithm, **settings, "views": len(scene.train)})
+                          {"algorithm": algorithm, **settings, "views": len(scene.train), **started})

@@ -224,14 +224,14 @@ def dry_run(args: _Common, cells: list, output_dir: Path) -> int:
 
 def run(args: _Common) -> int:
     from ..bench import aggregate, backends, page
-    from ..bench.cells import is_complete
+    from ..bench.cells import cell_dir, is_complete, own_folders_first
     from ..engine.run_dir import check_writable
 
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1 (runs at a time), got {args.workers}")
-    cells = expand(args)
     layout = LAYOUT[type(args)]
     output_dir = Path(args.output_dir)
+    cells = own_folders_first(output_dir, expand(args))
     if args.dry_run:
         return dry_run(args, cells, output_dir)
     check_writable(output_dir)
@@ -263,7 +263,7 @@ def run(args: _Common) -> int:
                 if result.status == "failed":
                     first = (result.error or "").strip().splitlines()
                     progress.console.print(f"[red]failed[/] {cell.id} ({result.wall_time_s:.0f} s): {first[0] if first else ''} "
-                                           f"— see {output_dir}/cells/{cell.id}/train.log")
+                                           f"— see {cell_dir(output_dir, cell) / 'train.log'}")
                 else:
                     progress.console.print(f"[green]done[/]   {cell.id} ({result.wall_time_s:.0f} s)")
                 progress.update(task, advance=1, description=describe())

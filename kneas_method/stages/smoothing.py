@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Optional
 
 import torch
 
@@ -49,13 +49,16 @@ class SmoothingConfig(StageConfig):
         return "smoothing: the volume smoothed as far as SURE says its noise allows (nothing on a clean scan), the model fitted to it"
 
 
-def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projector, rule: SmoothingRule = "sure"):
+def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projector, rule: SmoothingRule = "sure",
+                         mask: Optional[torch.Tensor] = None):
     """``volume`` [nx, ny, nz] smoothed as the smoothing stage smooths a model's volume: the filter SURE
     prefers (``rule``), its noise estimate raised while the smoothed volume's projections still fit
     ``projections`` [N, nV, nU] closer than their noise (``denoise.discrepancy_smoothing``; the noise
     from the volume's own residual, ``band_correction.noise_variance``). ``projector`` projects a volume
-    at the views' angles (``classical.projector.Projector``). Returns ``(smoothed, denoise.Denoising)``;
-    a classical volume gets the same treatment this way (``benchmarks/classical.py --smooth``)."""
+    at the views' angles (``classical.projector.Projector``). ``mask`` [nx, ny, nz] (bool): where the
+    volume's noise is estimated; None: its non-zero voxels (a model's volume is exactly 0 outside its
+    visual hull; a classical one, whose zeros are clamped noise, passes the whole grid). Returns
+    ``(smoothed, denoise.Denoising)``; ``benchmarks/classical.py --smooth`` smooths classical volumes so."""
     from .band_correction import noise_variance
     from .denoise import BILATERALS, discrepancy_smoothing
 
@@ -64,7 +67,7 @@ def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projec
         return float((r * r).mean())
 
     data_noise = noise_variance(projections - projector.forward(volume))
-    return discrepancy_smoothing(volume, misfit, data_noise, bilaterals=BILATERALS if rule == "sure" else ())
+    return discrepancy_smoothing(volume, misfit, data_noise, mask=mask, bilaterals=BILATERALS if rule == "sure" else ())
 
 
 class Smoothing(Stage):
