@@ -164,7 +164,7 @@ def _offset_detector_scan(phantom, cfg, name: str, columns: int, past_centre: in
     """``phantom`` scanned as ``cfg`` says (its detector noise too), but on ``columns`` of the detector's
     columns, shifted so that they reach ``past_centre`` columns past the central ray (an offset, half-fan detector)."""
     from kneas_method.data.scene import Scene, Views
-    from kneas_method.data.simulate import _finish, _meta, make_angles, make_geometry
+    from kneas_method.data.simulate import _meta, finish_projections, make_angles, make_geometry
 
     full = make_geometry(cfg)
     nv = full.n_detector[1]
@@ -172,7 +172,7 @@ def _offset_detector_scan(phantom, cfg, name: str, columns: int, past_centre: in
     offset = (columns / 2 - past_centre) * du  # the kept columns' centre, from the central ray
     geometry = dataclasses.replace(full, n_detector=(columns, nv), off_detector=(offset, full.off_detector[1]))
     train_a, val_a = make_angles(cfg)
-    train_p, val_p = _finish(cfg, np.asarray(phantom.project(geometry, train_a)), np.asarray(phantom.project(geometry, val_a)))
+    train_p, val_p = finish_projections(cfg, np.asarray(phantom.project(geometry, train_a)), np.asarray(phantom.project(geometry, val_a)))
     train, val = Views(train_a, train_p), Views(val_a, val_p)
     return Scene(name, geometry, train, val, image=np.ascontiguousarray(phantom.volume(geometry), dtype=np.float32),
                  labels=np.ascontiguousarray(phantom.labels(geometry), dtype=np.uint8), materials=tuple(phantom.materials),

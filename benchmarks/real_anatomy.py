@@ -19,7 +19,15 @@ Scenes:
   128 x 92 x 105), a 256² detector;
 * ``ts-abdomen``: the abdomen-pelvis CT on its own 3 mm grid (122 x 101 x 112), a 256² detector;
 * ``ts-chest-noisy``, ``ts-abdomen-noisy``: the same with the noisy scans' detector noise
-  (1e5 photons, electronic σ 10).
+  (1e5 photons, electronic σ 10);
+* ``ts-chest-fine``, ``ts-chest-fine-noisy``: ``ts-chest``'s truth and grid, its views projected from
+  the CT's own 1.5 mm grid instead (added on 2026-12-05). The four scenes above are projected from
+  the grid that is reconstructed and scored, by the projector the classical methods use, as NAF's
+  are by TIGRE: a clean scan is then exactly the projection of some volume on that grid, and an
+  iterative method approaches it for as long as it runs (the "inverse crime"). A scanner's object
+  has detail finer than any grid; projected from 1.8 times finer voxels, the views differ from the
+  truth's own projections by 0.7 % of their mean, and SART and CGLS stop improving after 7 and 21
+  iterations, as they do on a scanner's data.
 
 **Materials.** Real anatomy has no analytic surfaces, so the truth's materials are thresholds of the
 true volume in HU (``HU_THRESHOLDS``): lung and other gas-filled tissue from -900 HU (the air outside
@@ -44,9 +52,10 @@ import numpy as np
 PACKAGE, VERSION = "TotalSegmentator", "2.18.0"
 SDIST = f"totalsegmentator-{VERSION}.tar.gz"
 SOURCES = {"chest": "tests/reference_files/aorta_report/example_ct.nii.gz", "abdomen": "tests/reference_files/example_ct.nii.gz"}
-# (name, source, longest side in voxels or None for the CT's own grid, noise)
-SCENES = (("ts-chest", "chest", 128, False), ("ts-abdomen", "abdomen", None, False),
-          ("ts-chest-noisy", "chest", 128, True), ("ts-abdomen-noisy", "abdomen", None, True))
+# (name, source, longest side in voxels or None for the CT's own grid, noise, views projected from the CT's own grid)
+SCENES = (("ts-chest", "chest", 128, False, False), ("ts-abdomen", "abdomen", None, False, False),
+          ("ts-chest-noisy", "chest", 128, True, False), ("ts-abdomen-noisy", "abdomen", None, True, False),
+          ("ts-chest-fine", "chest", 128, False, True), ("ts-chest-fine-noisy", "chest", 128, True, True))
 HU_THRESHOLDS = (-900.0, -400.0, -30.0, 250.0)
 MATERIALS = ("lung", "fat", "soft tissue", "bone")
 N_DETECTOR, VIEWS = 256, 50
@@ -90,6 +99,25 @@ def resample(hu: np.ndarray, voxel_mm, longest: int | None) -> tuple[np.ndarray,
     return out.astype(np.float32), tuple(float(v) for v in size / np.array(out.shape))
 
 
+def project_finer(scene, fine_image: np.ndarray, fine_voxel_mm, cfg) -> None:
+    """Replace ``scene``'s views by the projections of ``fine_image`` [nx, ny, nz] (attenuation in the
+    scene's units), a finer grid of ``fine_voxel_mm`` over the same box, at the same angles and with the
+    same detector (``cfg``'s noise added to them if it asks for it); the truth stays the scene's own."""
+    from kneas_method.classical.projector import forward
+    from kneas_method.data.simulate import finish_projections
+
+    g = scene.geometry
+    fine = g.on_grid(fine_image.shape)
+    fine_mm = np.array(fine.d_voxel) * fine.mm_per_unit
+    if not np.allclose(fine_mm, np.array(fine_voxel_mm, dtype=float), rtol=1e-3):
+        raise ValueError(f"a grid of {fine_image.shape} voxels of {fine_voxel_mm} mm does not fill the scene's box "
+                         f"({g.n_voxel} voxels of {np.array(g.d_voxel) * g.mm_per_unit} mm)")
+    train = forward(np.ascontiguousarray(fine_image, dtype=np.float32), fine, scene.train.angles)
+    val = forward(np.ascontiguousarray(fine_image, dtype=np.float32), fine, scene.val.angles)
+    scene.train.projections, scene.val.projections = finish_projections(cfg, train, val)
+    scene.meta["projected_from"] = {"n_voxel": list(fine_image.shape), "voxel_mm": [float(v) for v in fine_voxel_mm]}
+
+
 def real_scene(name: str, sdist: Path):
     """The scene ``name`` of :data:`SCENES` (see the module docs)."""
     from kneas_method.data.naf import LABEL_THRESHOLDS_KEY, MATERIALS_KEY, attach_threshold_labels, threshold_labels
@@ -99,8 +127,9 @@ def real_scene(name: str, sdist: Path):
     spec = {s[0]: s for s in SCENES}
     if name not in spec:
         raise SystemExit(f"error: no real-anatomy scene {name!r}; scenes: {', '.join(spec)}")
-    _, source, longest, noise = spec[name]
-    hu, voxel_mm = resample(*read_ct(sdist, SOURCES[source]), longest)
+    _, source, longest, noise, fine = spec[name]
+    native_hu, native_mm = read_ct(sdist, SOURCES[source])
+    hu, voxel_mm = resample(native_hu, native_mm, longest)
     mu = hu_to_mu(hu)
     top = float(mu.max())
     image = (mu / top).astype(np.float32)
@@ -109,6 +138,8 @@ def real_scene(name: str, sdist: Path):
     meta = {LABEL_THRESHOLDS_KEY: thresholds, MATERIALS_KEY: list(MATERIALS), "hu_thresholds": list(HU_THRESHOLDS),
             "source_ct": f"{SDIST}:{SOURCES[source]}", "convert": True, "normalize": True, "hu_max": float(hu.max())}
     scene = simulate_from_volume(image, cfg, voxel_mm=voxel_mm, name=name, meta=meta)
+    if fine:
+        project_finer(scene, np.clip(hu_to_mu(native_hu) / top, 0, None), native_mm, cfg)
     scene.labels = threshold_labels(image, thresholds)
     attach_threshold_labels(scene, name)  # the materials and membership a load of the pickle gives
     return scene

@@ -133,7 +133,15 @@ class Geometry:
             raise KneasError(f"grid factor must be a positive integer, got {factor}")
         if factor == 1:
             return self
-        return replace(self, n_voxel=tuple(n * factor for n in self.n_voxel), d_voxel=tuple(d / factor for d in self.d_voxel))
+        return self.on_grid(tuple(n * factor for n in self.n_voxel))
+
+    def on_grid(self, n_voxel) -> "Geometry":
+        """The same volume box divided into ``n_voxel`` (3 positive integers) cells."""
+        n_voxel = tuple(int(n) for n in n_voxel)
+        if len(n_voxel) != 3 or min(n_voxel) < 1:
+            raise KneasError(f"a grid needs 3 positive voxel counts, got {n_voxel}")
+        box = [n * d for n, d in zip(self.n_voxel, self.d_voxel)]
+        return replace(self, n_voxel=n_voxel, d_voxel=tuple(b / n for b, n in zip(box, n_voxel)))
 
     # ------------------------------------------------------------ conversions
     @property

@@ -13,7 +13,7 @@ import torch
 from scipy import ndimage
 
 from conftest import run, run_dir_of, sphere_scene
-from kneas_method.stages.denoise import (BILATERAL_TRUNCATE, NOISE_SCALES, SIGMAS, bilateral, correlated_noise, discrepancy_smoothing,
+from kneas_method.stages.denoise import (BILATERAL_TRUNCATE, GIVE_UP, NOISE_SCALES, SIGMAS, bilateral, correlated_noise, discrepancy_smoothing,
                                   gaussian_blur, gaussian_taps, monte_carlo_sure, noise_autocovariance, robust_variance,
                                   shifted_pairs, sure, sure_smoothing)
 
@@ -207,13 +207,48 @@ def test_discrepancy_raises_the_noise_estimate_while_the_choice_fits_the_data_cl
     assert ratios[0] == pytest.approx(misfit(first) / noise_variance) and all(r < 1 for r in ratios[:-1])
     assert [m for m, _, _ in choice.misfit] == list(NOISE_SCALES[: len(ratios)]) and choice.misfit[-1][1] == choice.label
     assert choice.to_json()["misfit"][0]["noise_scale"] == 1.0
-    # where SURE's choice already reaches the data's noise, it stands
-    smoothed, choice = discrepancy_smoothing(noisy, misfit, 0.5 * misfit(first))
-    assert torch.equal(smoothed, first) and choice.noise_scale == 1.0 and len(choice.misfit) == 1
+    # where SURE's choice already reaches the data's noise, it stands: a volume that misfits the data by a
+    # floor of its own (half of what the filter gives up), the filter within the noise
+    floor = 0.5 * misfit(first)
+    smoothed, choice = discrepancy_smoothing(noisy, lambda v: misfit(v) + floor, 1.2 * misfit(first))
+    assert torch.equal(smoothed, first) and choice.noise_scale == 1.0 and len(choice.misfit) == 1 and not choice.refused
     # a clean volume: SURE chooses none and the projections are not compared
     calls.clear()
     smoothed, choice = discrepancy_smoothing(torch.as_tensor(clean), misfit, noise_variance)
     assert choice.filter == "none" and not calls and choice.misfit == []
+
+
+def test_a_filter_that_gives_up_more_fit_than_the_noise_is_refused():
+    """Texture that varies from voxel to voxel looks like noise to SURE; the projections (here the volume
+    itself, an identity projector) show it is not: taking it out costs far more fit than the data's noise."""
+    textured = torch.as_tensor(_balls() * (1 + 0.2 * _correlated_noise((64,) * 3, 1.0, 0.7, seed=3)))
+    _, sure_choice = sure_smoothing(textured)
+    assert sure_choice.filter != "none"  # SURE alone takes the texture for noise
+
+    def misfit(v):  # the data are the textured volume: it fits them exactly
+        return float(((v - textured) ** 2).mean())
+
+    removed = misfit(bilateral(textured, 1.5, 1.0 * sure_choice.noise_std))
+    smoothed, choice = discrepancy_smoothing(textured, misfit, data_noise=removed / 50)
+    assert torch.equal(smoothed, textured) and choice.filter == "none"
+    assert choice.refused == sure_choice.label and choice.own_misfit == 0.0 and len(choice.misfit) == 1
+    record = choice.to_json()
+    assert record["refused"] == sure_choice.label and record["own_misfit_over_noise"] == 0.0
+    # with the data's noise as large as what the filter takes out, the filter is kept (and the stronger one
+    # the raised noise estimate then asks for is refused)
+    smoothed, choice = discrepancy_smoothing(textured, misfit, data_noise=misfit(sure_smoothing(textured)[0]) / GIVE_UP * 1.001)
+    assert choice.label == sure_choice.label and choice.noise_scale == 1.0 and not torch.equal(smoothed, textured)
+    assert [m for m, _, _ in choice.misfit] == list(NOISE_SCALES[:2]) and choice.refused == choice.misfit[1][1]
+
+
+def test_a_stronger_choice_refused_keeps_the_last_one_within_the_noise():
+    clean = _balls()
+    noisy = torch.as_tensor(clean + _correlated_noise(clean.shape, 0.03, 0.7, seed=5))
+    first, first_choice = sure_smoothing(noisy)
+    values = iter([0.0, 0.5, 5.0])  # the volume's own misfit, then each choice's, in the order they are asked for
+    smoothed, choice = discrepancy_smoothing(noisy, lambda v: next(values), data_noise=1.0)
+    assert torch.equal(smoothed, first) and choice.label == first_choice.label and choice.noise_scale == 1.0
+    assert [m for m, _, _ in choice.misfit] == list(NOISE_SCALES[:2]) and choice.refused == choice.misfit[1][1]
 
 
 def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):

@@ -175,3 +175,27 @@ def test_the_classical_bar_starts_from_a_given_volume_or_the_truths_classes(tmp_
                         (["--runs", "fdk", "--init", "truth-classes"], "FDK is not iterative")):
         with pytest.raises(SystemExit, match=words):
             classical.main(["--scenes", str(path), *argv])
+
+
+def test_a_scene_projected_from_a_finer_grid_keeps_its_truth_and_takes_the_finer_views():
+    """The ``-fine`` scenes: the truth on the reconstruction grid, the views from the CT's finer grid
+    over the same box (no exact voxel solution for a classical method to approach)."""
+    import real_anatomy as ra
+    from kneas_method.classical.projector import forward
+    from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
+
+    scene, _, _ = crop_scene()  # 24^3 voxels of 3 mm: the finer grid
+    fine = scene.image
+    coarse = fine.reshape(12, 2, 12, 2, 12, 2).mean(axis=(1, 3, 5))  # 12^3 voxels of 6 mm over the same box
+    cfg = SimulationConfig(n_detector=32, n_train=8, n_val=4)
+    target = simulate_from_volume(coarse, cfg, voxel_mm=6.0, name="crop-coarse")
+    own = target.train.projections.copy()
+    ra.project_finer(target, fine, (3.0, 3.0, 3.0), cfg)
+    assert np.array_equal(target.image, coarse) and target.geometry.n_voxel == (12, 12, 12)
+    np.testing.assert_allclose(target.train.projections, forward(fine, scene.geometry, target.train.angles), rtol=1e-5, atol=1e-7)
+    assert np.allclose(target.geometry.on_grid((24, 24, 24)).d_voxel, scene.geometry.d_voxel)
+    gap = np.abs(target.train.projections - own).mean() / own.mean()
+    assert 1e-3 < gap < 0.1, gap  # the finer detail the coarse grid cannot hold
+    assert target.meta["projected_from"] == {"n_voxel": [24, 24, 24], "voxel_mm": [3.0, 3.0, 3.0]}
+    with pytest.raises(ValueError, match="does not fill the scene's box"):
+        ra.project_finer(target, fine[:20], (3.0, 3.0, 3.0), cfg)

@@ -211,7 +211,9 @@ def _meta(cfg: SimulationConfig, **extra) -> dict:
     return meta
 
 
-def _finish(cfg: SimulationConfig, train_p: np.ndarray, val_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def finish_projections(cfg: SimulationConfig, train_p: np.ndarray, val_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The training and held-out projections as a scene keeps them (float32, contiguous), with ``cfg``'s
+    detector noise added where it asks for it (drawn from ``cfg.seed``: the same draws for any scene)."""
     if cfg.noise:
         rng = np.random.default_rng([int(cfg.seed), 2])
         train_p = add_noise(train_p, cfg.photons, cfg.electronic_sigma, rng)
@@ -250,7 +252,7 @@ def simulate_phantom(phantom, cfg: SimulationConfig | None = None, *, progress: 
     train_p = np.asarray(phantom.project(geometry, train_a), dtype=np.float32)
     _say(progress, f"projecting {len(val_a)} held-out views")
     val_p = np.asarray(phantom.project(geometry, val_a), dtype=np.float32)
-    train_p, val_p = _finish(cfg, train_p, val_p)
+    train_p, val_p = finish_projections(cfg, train_p, val_p)
     _say(progress, "ground-truth volume and labels")
     image = np.ascontiguousarray(np.asarray(phantom.volume(geometry), dtype=np.float32))
     labels = np.ascontiguousarray(np.asarray(phantom.labels(geometry), dtype=np.uint8))
@@ -306,7 +308,7 @@ def simulate_from_volume(
     train_p = forward(vol, geometry, train_a, device=device)
     _say(progress, f"projecting {len(val_a)} held-out views")
     val_p = forward(vol, geometry, val_a, device=device)
-    train_p, val_p = _finish(cfg, train_p, val_p)
+    train_p, val_p = finish_projections(cfg, train_p, val_p)
     all_meta = _meta(cfg, simulation_seconds=round(time.perf_counter() - t0, 3))
     all_meta["simulation"]["n_voxel"] = list(vol.shape)
     all_meta["simulation"]["voxel_mm"] = list(_triple(voxel_mm if voxel_mm is not None else cfg.voxel_mm, float))

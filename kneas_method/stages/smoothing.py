@@ -4,8 +4,10 @@ noise allows, and the model fitted to the result.
 ``denoise.discrepancy_smoothing`` picks the filter (none, a Gaussian, or an edge-preserving bilateral
 filter) that minimises Stein's unbiased estimate of the volume's squared error under its own
 correlated noise, raising the noise estimate while the smoothed volume's projections still fit the
-training views closer than their noise (the discrepancy principle). Where no filter lowers the
-estimate (a clean scan) the volume is left as it is and the model is not touched.
+training views closer than their noise (the discrepancy principle), and refusing a filter whose
+projections fit the views worse than the unsmoothed volume's by more than their noise (it would take
+out texture the views show). Where no filter lowers the estimate, or the one that does is refused
+(a clean scan), the volume is left as it is and the model is not touched.
 """
 
 from __future__ import annotations
@@ -70,6 +72,41 @@ def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projec
     return discrepancy_smoothing(volume, misfit, data_noise, mask=mask, bilaterals=BILATERALS if rule == "sure" else ())
 
 
+def filter_words(choice) -> str:
+    """The filter of ``choice`` (a ``denoise.Denoising``) in words."""
+    return (f"a Gaussian of {choice.sigma:g} voxel" if choice.filter == "gaussian" else
+            f"a bilateral filter of {choice.sigma:g} voxels and {choice.range_stds:g} noise std")
+
+
+def describe_choice(choice) -> list[str]:
+    """What the smoothing chose and why, a line a step (a ``denoise.Denoising``): the noise estimate
+    raised, a choice refused for giving up more fit than the noise, the filter kept or none."""
+    lines = []
+    accepted = choice.misfit[:-1] if choice.refused else choice.misfit  # a refused choice is the last one tried
+    raised = accepted[:-1]  # the chosen filter is the last accepted one
+    if raised:
+        lines.append("; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise" for m, label, r in raised)
+                     + ": closer than the noise, so the volume holds more noise than estimated, and the estimate was raised")
+    if choice.refused:
+        r = choice.misfit[-1][2]
+        lines.append(f"{choice.refused} would fit the projections to {r:.3g} x their noise against the unsmoothed volume's "
+                     f"{choice.own_misfit:.3g}: it gives up more fit than the noise holds, so it would take out what the views "
+                     "show (texture or edges), and is refused")
+    if choice.filter == "none":
+        if not choice.refused:
+            lines.append(f"no smoothing lowers the estimated error (SURE; noise std {choice.noise_std:.3g}, "
+                         f"correlation with a neighbour {choice.neighbour_correlation:.2f}): the volume is left as it is")
+        else:
+            lines.append("the volume is left as it is")
+    else:
+        fits = f", its projections' misfit {accepted[-1][2]:.3f} of the data's noise" if accepted else ""
+        lines.append(f"{filter_words(choice)} lowers the estimated squared error {choice.sure['none']:.4g} -> "
+                     f"{choice.sure[choice.label]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
+                     f"{choice.neighbour_correlation:.2f}{fits}; {choice.seconds:.0f} s); fitting the model to it "
+                     "(--skip-stages smoothing skips it)")
+    return lines
+
+
 class Smoothing(Stage):
     def run(self, state: RunState) -> None:
         from ..classical.projector import Projector
@@ -84,21 +121,10 @@ class Smoothing(Stage):
         if 1 not in state.projectors:
             state.projectors[1] = Projector(scene.geometry, scene.train.angles, device=volume.device)
         smoothed, choice = smooth_against_views(volume, projections, state.projectors[1], c.rule)
-        if len(choice.misfit) > 1:
-            state.say("smoothing: " + "; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise"
-                                                for m, label, r in choice.misfit[:-1])
-                      + ": closer than the noise, so the volume holds more noise than estimated, and the estimate was raised")
-        if choice.filter == "none":
-            state.say(f"smoothing: no smoothing lowers the estimated error (SURE; noise std {choice.noise_std:.3g}, "
-                      f"correlation with a neighbour {choice.neighbour_correlation:.2f}): the volume is left as it is")
-        else:
-            what = (f"a Gaussian of {choice.sigma:g} voxel" if choice.filter == "gaussian" else
-                    f"a bilateral filter of {choice.sigma:g} voxels and {choice.range_stds:g} noise std")
-            fits = f", its projections' misfit {choice.misfit[-1][2]:.3f} of the data's noise" if choice.misfit else ""
-            state.say(f"smoothing: {what} lowers the estimated squared error {choice.sure['none']:.4g} -> "
-                      f"{choice.sure[choice.label]:.4g} (SURE; noise std {choice.noise_std:.3g}, correlation with a neighbour "
-                      f"{choice.neighbour_correlation:.2f}{fits}; {choice.seconds:.0f} s); fitting the model to it "
-                      "(--skip-stages smoothing skips it)")
+        for line in describe_choice(choice):
+            state.say("smoothing: " + line)
+        if choice.filter != "none":
+            what = filter_words(choice)
             region = (volume != 0).cpu().numpy()
             fit_in_region(trainer, smoothed.clamp_min(0).cpu().numpy(), region, int(c.steps), int(c.points), float(c.lr),
                           curvature=float(c.curvature), what=f"the volume smoothed by {what}", stage="smoothing")
