@@ -521,6 +521,42 @@ def test_archive_keeps_the_records_the_page_reads_and_a_table_continues_from_it(
         assert exc.value.code != 0 and "Traceback" not in capsys.readouterr().err
 
 
+def test_a_table_run_with_another_procedure_is_its_own_table_on_the_page(tmp_path, fake_prefix, monkeypatch, capsys):
+    from kneas_method.bench import page
+    from kneas_method.cli import bench as cli
+
+    log = tmp_path / "calls.jsonl"
+    monkeypatch.setenv("FAKE_LOG", str(log))
+    monkeypatch.setattr(cli, "TRAIN_PREFIX", fake_prefix)
+    out, kept = tmp_path / "bench", tmp_path / "kept"
+    base = ["ablation", "--preset", "tiny", "--seeds", "1", "--references", "fdk", "--oracles", "--output-dir", str(out)]
+    for argv in (base, base + ["--procedure", "paper"]):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(argv)
+        assert exc.value.code == 0
+    calls = [c["args"] for c in _calls(log)]
+    neural = [a for a in calls if a[0] in grid.ABLATION_METHODS]
+    assert len(neural) == 8 and sum(a[-2:] == ["--procedure", "paper"] for a in neural) == 4  # the default's four, then the paper's
+    assert [a[0] for a in calls].count("fdk") == 1  # the classical rows are the same run in both tables
+    assert (out / "ablation@paper.cells.json").is_file() and (out / "table3_ablation@paper.md").is_file()
+    assert (out / "table3_ablation.md").is_file()
+    assert page.table_names(out) == ["ablation", "ablation@paper"]
+    text = page.render(out)
+    assert "## Table 3: component ablation\n" in text and "## Table 3: component ablation, the paper procedure" in text
+    assert text.count("### Claims") == 2 and text.count("\n- **") == 8  # the four claims checked in each table
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["archive", "--output-dir", str(out), "--to", str(kept)])
+    assert exc.value.code == 0 and page.table_names(kept) == ["ablation", "ablation@paper"]
+    capsys.readouterr()
+    for bad in (base + ["--procedure", "papper"], base + ["--train-args=--procedure paper"]):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(bad)
+        err = capsys.readouterr().err
+        assert exc.value.code != 0 and "procedure" in err and "Traceback" not in err
+    assert grid.procedure_args(None) == () and Cell("foot", "k-neas", 2, None, 0, "tiny", ("--procedure", "paper")).id.endswith("__x" + __import__(
+        "hashlib").sha1("--procedure\0paper".encode()).hexdigest()[:8])
+
+
 def test_cli_references_option(tmp_path, fake_prefix, monkeypatch):
     from kneas_method.cli import bench as cli
 

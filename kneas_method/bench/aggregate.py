@@ -450,15 +450,18 @@ def cells_csv(output_dir: str | Path, cells: Sequence[Cell]) -> str:
     return buf.getvalue()
 
 
-def write_tables(output_dir: str | Path, layout: str, cells: Sequence[Cell]) -> tuple[Table, dict[tuple, Group], list[Path]]:
-    """Aggregate and write ``<name>.md``, ``<name>.csv`` and ``<name>_cells.csv`` into ``output_dir``."""
+def write_tables(output_dir: str | Path, layout: str, cells: Sequence[Cell],
+                 procedure: Optional[str] = None) -> tuple[Table, dict[tuple, Group], list[Path]]:
+    """Aggregate and write ``<name>.md``, ``<name>.csv`` and ``<name>_cells.csv`` into ``output_dir``, ``name``
+    the table's own (``table1_k_materials``), followed by ``@procedure`` for a table run with another procedure."""
     from ..engine.run_dir import check_writable
 
     out = check_writable(output_dir, needed_bytes=0)
     groups = collect(output_dir, cells)
     table = LAYOUTS[layout](cells, groups)
-    md, cv = out / f"{table.name}.md", out / f"{table.name}.csv"
-    per_cell = out / f"{table.name}_cells.csv"
+    name = table.name + ("" if procedure is None else f"@{procedure}")
+    md, cv = out / f"{name}.md", out / f"{name}.csv"
+    per_cell = out / f"{name}_cells.csv"
     for path, text in ((md, to_markdown(table, groups)), (cv, to_csv(table, groups)), (per_cell, cells_csv(output_dir, cells))):
         tmp = path.with_suffix(path.suffix + ".tmp")
         tmp.write_text(text, encoding="utf-8")

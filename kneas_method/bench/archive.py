@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .cells import CELLS, is_finished
-from .page import LAYOUTS, add_to_manifest, manifest_path, read_manifest
+from .page import add_to_manifest, read_manifest, table_names
 
 RECORD_SUFFIXES = (".json", ".log")
 # A record larger than this is not a record (a run's JSON and logs are a few KB); it stays behind.
@@ -46,9 +46,8 @@ def archive(source: str | Path, target: str | Path) -> ArchiveResult:
     """
     source, target = Path(source), Path(target)
     cells = files = size = skipped = 0
-    for layout in LAYOUTS:
-        if manifest_path(source, layout).is_file():
-            add_to_manifest(target, layout, read_manifest(source, layout) or [])
+    for name in table_names(source):
+        add_to_manifest(target, name, read_manifest(source, name) or [])
     root = source / CELLS
     for folder in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
         if not is_finished(folder):  # a running or interrupted cell's records are partial: it reruns or resumes

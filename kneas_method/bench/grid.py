@@ -234,13 +234,25 @@ def share_all_views(cells: Iterable[Cell], totals: dict[str, int]) -> list[Cell]
             for c in cells]
 
 
+def procedure_args(procedure: Optional[str]) -> tuple[str, ...]:
+    """The ``kneas-train`` arguments that fit a table's neural cells with ``procedure`` (None: the
+    preset's own, no argument); an unknown procedure is refused before any cell runs. The classical
+    references have no procedure: they run as they do in every table."""
+    if procedure is None:
+        return ()
+    from ..presets import procedure_of
+
+    procedure_of(procedure)  # raises ConfigError naming the known procedures
+    return ("--procedure", procedure)
+
+
 def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
            ks: Sequence[int] = TABLE1_K, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
-           extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
+           extra: Sequence[str] = (), oracles: Sequence[str] = (), procedure: Optional[str] = None) -> list[Cell]:
     """Table 1: per scene NeAS 1M (neas-1m), NeAS 2M (neas-2m) and K-NeAS KM (k-neas, K in ``ks``),
     plus one cell per classical reference in ``references`` (empty: none)."""
     totals = _check_common(scenes, preset, [views])
-    extra = tuple(extra)
+    refs_extra, extra = tuple(extra), tuple(extra) + procedure_args(procedure)
     cells = []
     for s in scenes:
         for k in ks:
@@ -250,39 +262,40 @@ def table1(scenes: Sequence[str] = ("abdomen", "chest", "foot", "jaw"), seeds: S
                 if k in (1, 2):
                     cells.append(Cell(s, f"neas-{k}m", k, views, seed, preset, extra))
                 cells.append(Cell(s, "k-neas", k, views, seed, preset, extra))
-    cells += _reference_cells(scenes, [views], references, preset, extra, oracles)
+    cells += _reference_cells(scenes, [views], references, preset, refs_extra, oracles)
     return share_all_views(_dedupe(cells), totals)
 
 
 def views_table(scenes: Sequence[str] = ("chest",), seeds: Sequence[int] = (0, 1, 2), preset: str = "auto",
                 views: Sequence[int] = VIEWS, k: int = 2, references: Sequence[str] = REFERENCE_METHODS,
-                extra: Sequence[str] = (), oracles: Sequence[str] = (), found_k: bool = True) -> list[Cell]:
+                extra: Sequence[str] = (), oracles: Sequence[str] = (), found_k: bool = True,
+                procedure: Optional[str] = None) -> list[Cell]:
     """Table 2: views x {neas-2m, k-neas with K = 2} per scene, plus each classical reference per scene and view count.
 
     ``found_k`` adds k-neas as a user runs it (no K given: K comes from the bounds), one cell per view count and seed.
     """
     totals = _check_common(scenes, preset, views)
-    extra = tuple(extra)
+    refs_extra, extra = tuple(extra), tuple(extra) + procedure_args(procedure)
     models = [("neas-2m", 2), ("k-neas", k)] + ([("k-neas", None)] if found_k else [])
     cells = [Cell(s, m, mk, v, seed, preset, extra) for s in scenes for v in views for m, mk in models for seed in seeds]
-    cells += _reference_cells(scenes, views, references, preset, extra, oracles)
+    cells += _reference_cells(scenes, views, references, preset, refs_extra, oracles)
     return share_all_views(_dedupe(cells), totals)
 
 
 def ablation(scenes: Sequence[str] = ("foot",), seeds: Sequence[int] = (0,), preset: str = "auto", k: int = 2,
              methods: Sequence[str] = ABLATION_METHODS, views: Optional[int] = None, references: Sequence[str] = REFERENCE_METHODS,
-             extra: Sequence[str] = (), oracles: Sequence[str] = ()) -> list[Cell]:
+             extra: Sequence[str] = (), oracles: Sequence[str] = (), procedure: Optional[str] = None) -> list[Cell]:
     """Table 3: the four-way ablation with K = 2, plus one cell per classical reference and scene."""
     totals = _check_common(scenes, preset, [views])
-    extra = tuple(extra)
+    refs_extra, extra = tuple(extra), tuple(extra) + procedure_args(procedure)
     # a classical method among ``methods`` is a reference (one run, no K), not an ablation variant
     cells = [Cell(s, m, k, views, seed, preset, extra) for s in scenes for m in methods if not is_reference(m) for seed in seeds]
-    cells += _reference_cells(scenes, [views], [*references, *filter(is_reference, methods)], preset, extra, oracles)
+    cells += _reference_cells(scenes, [views], [*references, *filter(is_reference, methods)], preset, refs_extra, oracles)
     return share_all_views(_dedupe(cells), totals)
 
 
 def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[int]] = (None,), views: Sequence[Optional[int]] = (None,),
-         seeds: Sequence[int] = (0,), preset: str = "auto", extra: Sequence[str] = ()) -> list[Cell]:
+         seeds: Sequence[int] = (0,), preset: str = "auto", extra: Sequence[str] = (), procedure: Optional[str] = None) -> list[Cell]:
     """Any scenes x methods x K x views x seeds.
 
     K is ignored for the classical references and naf (and fixed to 1 / 2 for neas-1m /
@@ -292,7 +305,7 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
     totals = _check_common(scenes, preset, views)
     if not methods:
         raise ConfigError("no methods given; pass e.g. --methods k-neas neas-2m fdk")
-    extra = tuple(extra)
+    refs_extra, extra = tuple(extra), tuple(extra) + procedure_args(procedure)
     cells = []
     for s in scenes:
         for m in methods:
@@ -305,7 +318,7 @@ def grid(scenes: Sequence[str], methods: Sequence[str], ks: Sequence[Optional[in
                     mk = list(ks)
                 for k in mk:
                     for seed in (seeds[:1] if is_reference(m) else seeds):
-                        cells.append(Cell(s, m, k, v, seed, preset, extra))
+                        cells.append(Cell(s, m, k, v, seed, preset, refs_extra if is_reference(m) else extra))
     return share_all_views(_dedupe(cells), totals)
 
 

@@ -63,6 +63,8 @@ class _Common:
     """classical methods that also get an oracle row: one run of 40 iterations per scene and view count, every count scored against the truth, the best one shown ('best of 1-40 (oracle)'); --oracles with no name adds none"""
     train_args: str = ""
     """extra kneas-train arguments for every cell, as one string with =: --train-args="--trainer.epochs 5" """
+    procedure: Optional[str] = None
+    """the fitting procedure of the neural cells (paper, refine-classical or a plugin's; default: the preset's): a table run with one is recorded as its own table (table1@paper) and shown after the default's on the page"""
 
 
 @dataclass
@@ -166,19 +168,23 @@ def expand(args: _Common) -> list:
         extra = tuple(shlex.split(args.train_args))
     except ValueError as exc:
         raise ConfigError(f"--train-args could not be split ({exc}); quote it as one string, e.g. --train-args=\"--trainer.epochs 5\"") from None
-    for bad in ("--output-dir", "--seed", "--preset", "--scene", "--views", "--num-materials"):
+    for bad in ("--output-dir", "--seed", "--preset", "--scene", "--views", "--num-materials", "--procedure"):
         if any(a == bad or a.startswith(bad + "=") for a in extra):
             raise ConfigError(f"--train-args must not contain {bad}: kneas-bench sets it per cell; use the kneas-bench option instead")
     if isinstance(args, Table1):
-        cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.references, extra, args.oracles)
+        cells = grid.table1(args.scenes, seeds, args.preset, args.num_materials, args.views, args.references, extra, args.oracles,
+                            args.procedure)
     elif isinstance(args, Views):
-        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra, args.oracles, args.found_k)
+        cells = grid.views_table(args.scenes, seeds, args.preset, args.views, args.num_materials, args.references, extra, args.oracles,
+                                 args.found_k, args.procedure)
     elif isinstance(args, Ablation):
-        cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.references, extra, args.oracles)
+        cells = grid.ablation(args.scenes, seeds, args.preset, args.num_materials, args.methods, None, args.references, extra, args.oracles,
+                              args.procedure)
     else:
         references = grid.check_references(args.references)
         methods = list(args.methods) + ([m for m in references if m not in args.methods] if args.methods else [])
-        cells = grid.grid(args.scenes, methods, args.num_materials or (None,), args.views or (None,), seeds, args.preset, extra)
+        cells = grid.grid(args.scenes, methods, args.num_materials or (None,), args.views or (None,), seeds, args.preset, extra,
+                          args.procedure)
         cells += grid.oracle_cells(args.scenes, args.views or (None,), args.oracles, args.preset, extra)
     grid.check_methods({c.method for c in cells})
     return cells
@@ -230,20 +236,21 @@ def run(args: _Common) -> int:
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1 (runs at a time), got {args.workers}")
     layout = LAYOUT[type(args)]
+    name = page.table_name(layout, args.procedure)
     output_dir = Path(args.output_dir)
     cells = own_folders_first(output_dir, expand(args))
     if args.dry_run:
         return dry_run(args, cells, output_dir)
     check_writable(output_dir)
     if layout in page.LAYOUTS:  # before any cell runs, so the page counts an interrupted table's cells too
-        page.add_to_manifest(output_dir, layout, cells)
+        page.add_to_manifest(output_dir, name, cells)
     if args.backend == "local" and (args.address or args.cpus_per_cell != 1):
         raise ConfigError("--address and --cpus-per-cell are for the ray backend; add --backend ray")
     if args.backend == "ray" and args.workers != 1:
         raise ConfigError("--workers is for the local backend; Ray runs as many cells at a time as the cluster has room for")
     backend = backends.make_backend(args.backend, args.workers, args.address, args.cpus_per_cell)
     todo = [c for c in cells if not is_complete(output_dir, c)]
-    console.print(f"kneas-bench {layout}: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run "
+    console.print(f"kneas-bench {name}: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run "
                   f"on {backend.describe()}; output {output_dir}")
     counts = {"done": 0, "failed": 0}
     t0 = time.monotonic()
@@ -271,7 +278,7 @@ def run(args: _Common) -> int:
             from ..bench.grid import DEFAULT_TRAIN_PREFIX
 
             backend.run(todo, output_dir, prefix=TRAIN_PREFIX or DEFAULT_TRAIN_PREFIX, on_result=on_result)
-    table, groups, paths = aggregate.write_tables(output_dir, layout, cells)
+    table, groups, paths = aggregate.write_tables(output_dir, layout, cells, procedure=args.procedure)
     console.print(Path(paths[0]).read_text(encoding="utf-8"), markup=False, highlight=False)
     console.print(f"{counts['done']} cells run, {counts['failed']} failed, {len(cells) - len(todo)} skipped as complete, "
                   f"in {time.monotonic() - t0:.0f} s; tables: {', '.join(str(p) for p in paths)}")
@@ -290,7 +297,7 @@ def write_page(args: Page) -> int:
     output_dir = Path(args.output_dir)
     if not output_dir.is_dir():
         raise ConfigError(f"{output_dir} does not exist; run a table first (kneas-bench table1|views|ablation --output-dir {output_dir})")
-    if not any(page.manifest_path(output_dir, layout).is_file() for layout in page.LAYOUTS):
+    if not page.table_names(output_dir):
         raise ConfigError(f"no table has run in {output_dir} (no {', '.join(l + page.MANIFEST_SUFFIX for l in page.LAYOUTS)}); "
                           "run kneas-bench table1|views|ablation --output-dir DIR first, or pass that DIR")
     check_writable(Path(args.write).parent, needed_bytes=0)
