@@ -47,7 +47,7 @@ The projections also tell when SURE takes signal for noise: texture that varies 
 worsen its fit to the data by at most the data's noise variance (the noise it had fitted); a filter
 whose projections fit worse than the unsmoothed volume's by more than that (``GIVE_UP``) takes out
 what the data hold, and is refused, as is every stronger choice after it. Measured on the default
-runs (2026-12-05): noisy scans give up 0.01-0.03 of the noise variance, clean real anatomy 2.4-2.9.
+runs (2026-12-05): noisy scans give up 0.01-0.15 of the noise variance, clean real anatomy 2.4-2.9.
 
 The pure functions take and return tensors; :func:`gaussian_blur` is separable (three 1-D passes,
 the volume's border repeated); ``tests/test_denoise.py`` has naive versions as oracles.
