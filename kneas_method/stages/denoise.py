@@ -227,8 +227,8 @@ class Denoising:
     (their mean), and the ``region``'s voxel count; from :func:`discrepancy_smoothing`, the
     ``misfit`` of each choice it tried (its projections' mean-square misfit over the data's noise
     variance, in the order of ``NOISE_SCALES``), the unsmoothed volume's own misfit in the same unit
-(``own_misfit``) and the first choice refused for giving up more fit than the noise (``refused``, its
-label; empty when none was)."""
+    (``own_misfit``) and the first choice refused for giving up more fit than the noise (``refused``, its
+    label; empty when none was)."""
 
     filter: str
     sigma: float = 0.0
@@ -332,10 +332,10 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
             break
         if own is None:
             own = float(misfit(volume))
-        given_up = float(misfit(smoothed))
-        ratio = given_up / float(data_noise)
+        smoothed_misfit = float(misfit(smoothed))
+        ratio = smoothed_misfit / float(data_noise)
         tried.append((float(scale), choice.label, ratio))
-        if given_up - own > give_up * float(data_noise):
+        if smoothed_misfit - own > give_up * float(data_noise):
             refused = choice.label
             break
         accepted = (smoothed, choice)
