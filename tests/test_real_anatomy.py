@@ -130,9 +130,12 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
     for key, count in (("smoothed", 12), ("smoothed_best", best)):
         volume = torch.as_tensor(sart(loaded.train.projections, loaded.geometry, loaded.train.angles, iterations=count, relaxation=1.0))
         smoothed, choice = smooth_against_views(volume, projections, projector, mask=torch.ones(volume.shape, dtype=torch.bool))
-        assert row[key]["filter"] == choice.label != "none"
+        assert row[key]["filter"] == choice.label
         assert row[key]["psnr3d"] == pytest.approx(psnr3d(smoothed.clamp_min(0).numpy(), loaded.image), abs=1e-3)
-    assert row["smoothed"]["psnr3d"] > row["psnr3d"]  # a noisy scan's volume is better smoothed
+    # the best count's volume fits the views to their noise and keeps its filter; the last count's may be refused
+    # (a filter may not give up more fit than the noise), so it is never worse than the run's own volume
+    assert row["smoothed_best"]["filter"] != "none" and row["smoothed_best"]["psnr3d"] > row["best"]["psnr3d"]
+    assert row["smoothed"]["psnr3d"] >= row["psnr3d"] - 1e-3  # both rounded as the table prints them
 
 
 def test_the_classical_bar_refuses_to_smooth_a_scene_without_truth(tmp_path):
