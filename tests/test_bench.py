@@ -515,6 +515,10 @@ def test_archive_keeps_the_records_the_page_reads_and_a_table_continues_from_it(
         cli.main(["archive", "--output-dir", str(elsewhere), "--to", str(kept)])
     assert exc.value.code == 0
     assert "9 of 9 cells complete" in page.render(kept)
+    # the page says which code the cells ran on (metrics.json's code record; the fake runs have none)
+    record = next((kept / "cells").glob("*/*/kselector/*/metrics.json"))
+    record.write_text(json.dumps({**json.loads(record.read_text()), "code": {"kneas": "0.1.0", "commit": "ab" * 20}}))
+    assert "9 of 9 cells complete, " in page.render(kept) and "; code: not recorded (8 cells), abababababab (1 cell).\n" in page.render(kept)
     for bad in (["--output-dir", str(tmp_path / "nothing")], ["--output-dir", str(out), "--to", str(out)]):
         with pytest.raises(SystemExit) as exc:
             cli.main(["archive", *bad])

@@ -125,6 +125,9 @@ def test_fdk_method(tiny_scene, tmp_path, capsys):
     for key in METRIC_KEYS:
         assert key in m, key
     assert m["threads"] == 1
+    from kneas_method.engine.code_version import code_version
+
+    assert m["code"] == code_version() and m["code"]["kneas"] == __import__("kneas_method").__version__
     assert m["parameters"] == 0 and m["steps"] == 0 and not list((run_dir / "checkpoints").glob("*.ckpt"))
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == "fdk"
     from kneas_method.data.naf import load_naf

@@ -32,10 +32,12 @@ import csv
 import io
 import math
 import statistics
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Any, Optional, Sequence
 
+from ..engine.code_version import describe
 from ..engine.run_dir import read_json
 from . import paper_results as paper
 from .cells import cell_dir, find_metrics, read_cell_record
@@ -70,6 +72,7 @@ class Group:
     done: int = 0  # seeds with a metrics.json
     seconds: float = 0.0  # their recorded wall time, summed
     materials: set[int] = field(default_factory=set)  # the K each run used (metrics.json num_materials)
+    code: Counter = field(default_factory=Counter)  # runs per code label (metrics.json code, engine.code_version.describe)
 
     @property
     def n(self) -> int:
@@ -104,6 +107,7 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
         data = read_json(m, "metrics file")
         g.done += 1
         g.seconds += _float(data.get("wall_time_s")) or 0.0
+        g.code[describe(data.get("code"))] += 1
         if isinstance(data.get("num_materials"), int):
             g.materials.add(data["num_materials"])
         if cell.oracle:  # the best count's 3D figures; the 2D ones are of the last count's volume, not shown

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
@@ -363,7 +364,8 @@ def _render_table(output_dir, layout: str, cells: list, paper_table, paper_title
     table = aggregate.LAYOUTS[layout](cells, groups)
     seconds, done = sum(g.seconds for g in groups.values()), sum(g.done for g in groups.values())
     ours = aggregate.to_markdown(table, groups).replace(f"## {table.title}", f"### Ours: {table.title}", 1)
-    parts += [f"{done} of {len(cells)} cells complete, {format_seconds(seconds)} of recorded run time.", "", ours,
+    parts += [f"{done} of {len(cells)} cells complete, {format_seconds(seconds)} of recorded run time"
+              + (f"; {code_line(groups)}." if done else "."), "", ours,
               f"### {paper_title}", "", paper_table(), "", "### Claims", ""]
     verdicts = VERDICTS[layout](cells, groups)
     for v in verdicts:
@@ -371,6 +373,12 @@ def _render_table(output_dir, layout: str, cells: list, paper_table, paper_title
     parts += [v.line() for v in verdicts] or ["- no cells to check a claim on"]
     parts.append("")
     return verdict_counts
+
+
+def code_line(groups: dict[tuple, Group]) -> str:
+    """Which code the complete cells ran on: ``code: <commit> (n cells), not recorded (m cells)``, most cells first."""
+    counts = sum((g.code for g in groups.values()), Counter())
+    return "code: " + ", ".join(f"{label} ({n} cell{'s' if n != 1 else ''})" for label, n in counts.most_common())
 
 
 def write_page(output_dir: str | Path, path: str | Path, command: str = "kneas-bench page") -> Path:

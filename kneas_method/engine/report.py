@@ -14,6 +14,7 @@ from typing import Optional
 import torch
 
 from ..console import console, say
+from .code_version import code_version
 from .progress import _duration, summary_table
 from .run_dir import write_json
 
@@ -45,7 +46,8 @@ def _common(config, scene, evaluation, device) -> tuple[dict, dict]:
     headline, per_view = split_per_view(evaluation.metrics)
     out = {**headline, "method": config.method, "scene": scene.name, "views": len(scene.train)}
     # the thread count changes the order of floating-point sums, so a neural run's figures follow it as they follow the seed
-    facts = {"preset": config.preset, "scene_source": scene.source, "device": str(device), "threads": torch.get_num_threads()}
+    facts = {"preset": config.preset, "scene_source": scene.source, "device": str(device), "threads": torch.get_num_threads(),
+             "code": code_version()}
     notes = scene_notes(scene)
     if notes:
         facts["notes"] = notes
