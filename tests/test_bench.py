@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -519,6 +520,10 @@ def test_archive_keeps_the_records_the_page_reads_and_a_table_continues_from_it(
     record = next((kept / "cells").glob("*/*/kselector/*/metrics.json"))
     record.write_text(json.dumps({**json.loads(record.read_text()), "code": {"kneas": "0.1.0", "commit": "ab" * 20}}))
     assert "9 of 9 cells complete, " in page.render(kept) and "; code: not recorded (8 cells), abababababab (1 cell).\n" in page.render(kept)
+    # and when: the days its cells started on (cell.json), one cell set back to an earlier sitting
+    cell_json = record.parents[3] / "cell.json"
+    cell_json.write_text(json.dumps({**json.loads(cell_json.read_text()), "started": "2020-01-02T03:04:05"}))
+    assert re.search(r"recorded run time; run 2020-01-02 to 20\d\d-\d\d-\d\d; code: ", page.render(kept))
     for bad in (["--output-dir", str(tmp_path / "nothing")], ["--output-dir", str(out), "--to", str(out)]):
         with pytest.raises(SystemExit) as exc:
             cli.main(["archive", *bad])

@@ -73,6 +73,7 @@ class Group:
     seconds: float = 0.0  # their recorded wall time, summed
     materials: set[int] = field(default_factory=set)  # the K each run used (metrics.json num_materials)
     code: Counter = field(default_factory=Counter)  # runs per code label (metrics.json code, engine.code_version.describe)
+    days: set[str] = field(default_factory=set)  # the days (YYYY-MM-DD) their cells started on (cell.json started)
 
     @property
     def n(self) -> int:
@@ -108,6 +109,9 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
         g.done += 1
         g.seconds += _float(data.get("wall_time_s")) or 0.0
         g.code[describe(data.get("code"))] += 1
+        started = (read_cell_record(output_dir, cell) or {}).get("started")
+        if isinstance(started, str) and len(started) >= 10:
+            g.days.add(started[:10])
         if isinstance(data.get("num_materials"), int):
             g.materials.add(data["num_materials"])
         if cell.oracle:  # the best count's 3D figures; the 2D ones are of the last count's volume, not shown
