@@ -58,3 +58,22 @@ def test_this_install_is_described():
     code = code_version()
     assert code["kneas"] == __version__ and code == code_version(PACKAGE_DIR)
     assert set(code) <= {"kneas", "commit", "modified"}
+
+
+def test_a_run_keeps_the_code_it_started_with(tmp_path, monkeypatch):
+    """The record is taken when the run folder is made: a checkout that moves on while the run
+    trains (a commit between two benchmark cells) does not relabel the run."""
+    from kneas_method.engine import code_version as cv
+    from kneas_method.engine.run_dir import create_run_dir
+
+    head = {"commit": "a" * 40}
+    answers = {"rev-parse --show-toplevel": lambda: str(PACKAGE_DIR.parent), "rev-parse HEAD": lambda: head["commit"],
+               "status --porcelain --untracked-files=no -- .": lambda: ""}
+    monkeypatch.setattr(cv, "_git", lambda root, *args: answers[" ".join(args)]())
+    code_version.cache_clear()
+    try:
+        create_run_dir(tmp_path, "foot", "k-neas")
+        head["commit"] = "b" * 40  # the checkout moves on mid-run
+        assert code_version()["commit"] == "a" * 40
+    finally:
+        code_version.cache_clear()
