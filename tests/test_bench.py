@@ -518,8 +518,11 @@ def test_archive_keeps_the_records_the_page_reads_and_a_table_continues_from_it(
     assert "9 of 9 cells complete" in page.render(kept)
     # the page says which code the cells ran on (metrics.json's code record; the fake runs have none)
     record = next((kept / "cells").glob("*/*/kselector/*/metrics.json"))
-    record.write_text(json.dumps({**json.loads(record.read_text()), "code": {"kneas": "0.1.0", "commit": "ab" * 20}}))
-    assert "9 of 9 cells complete, " in page.render(kept) and "; code: not recorded (8 cells), abababababab (1 cell).\n" in page.render(kept)
+    record.write_text(json.dumps({**json.loads(record.read_text()), "code": {"kneas": "0.1.0", "commit": "ab" * 20},
+                                  "machine": {"processor": "Some CPU", "cores": 2, "torch": "2.13.0"}}))
+    assert "9 of 9 cells complete, " in page.render(kept)
+    assert ("; code: not recorded (8 cells), abababababab (1 cell); machines: not recorded (8 cells), "
+            "Some CPU / 2 cores / torch 2.13.0 (1 cell).\n") in page.render(kept)
     # and when: the days its cells started on (cell.json), one cell set back to an earlier sitting
     cell_json = record.parents[3] / "cell.json"
     cell_json.write_text(json.dumps({**json.loads(cell_json.read_text()), "started": "2020-01-02T03:04:05"}))

@@ -128,6 +128,7 @@ def test_fdk_method(tiny_scene, tmp_path, capsys):
     from kneas_method.engine.code_version import code_version
 
     assert m["code"] == code_version() and m["code"]["kneas"] == __import__("kneas_method").__version__
+    assert m["machine"]["torch"] == torch.__version__ and m["machine"]["cores"] >= 1 and "gpu" not in m["machine"]
     assert m["parameters"] == 0 and m["steps"] == 0 and not list((run_dir / "checkpoints").glob("*.ckpt"))
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == "fdk"
     from kneas_method.data.naf import load_naf

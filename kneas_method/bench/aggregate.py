@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Any, Optional, Sequence
 
+from ..engine import machine
 from ..engine.code_version import describe
 from ..engine.run_dir import read_json
 from . import paper_results as paper
@@ -73,6 +74,7 @@ class Group:
     seconds: float = 0.0  # their recorded wall time, summed
     materials: set[int] = field(default_factory=set)  # the K each run used (metrics.json num_materials)
     code: Counter = field(default_factory=Counter)  # runs per code label (metrics.json code, engine.code_version.describe)
+    machines: Counter = field(default_factory=Counter)  # runs per machine label (metrics.json machine, engine.machine.describe)
     days: set[str] = field(default_factory=set)  # the days (YYYY-MM-DD) their cells started on (cell.json started)
 
     @property
@@ -109,6 +111,7 @@ def collect(output_dir: str | Path, cells: Sequence[Cell]) -> dict[tuple, Group]
         g.done += 1
         g.seconds += _float(data.get("wall_time_s")) or 0.0
         g.code[describe(data.get("code"))] += 1
+        g.machines[machine.describe(data.get("machine"))] += 1
         started = (read_cell_record(output_dir, cell) or {}).get("started")
         if isinstance(started, str) and len(started) >= 10:
             g.days.add(started[:10])

@@ -376,12 +376,16 @@ def _render_table(output_dir, layout: str, cells: list, paper_table, paper_title
 
 
 def code_line(groups: dict[tuple, Group]) -> str:
-    """When and on which code the complete cells ran: ``run 2026-12-04 to 2026-12-06; code: <commit> (n cells),
-    not recorded (m cells)``, most cells first."""
-    counts = sum((g.code for g in groups.values()), Counter())
+    """When, on which code and on which machines the complete cells ran: ``run 2026-12-04 to 2026-12-06;
+    code: <commit> (n cells), not recorded (m cells); machines: <processor, cores, torch> (n cells), ...``,
+    most cells first."""
+    def counted(attr: str) -> str:
+        counts = sum((getattr(g, attr) for g in groups.values()), Counter())
+        return ", ".join(f"{label} ({n} cell{'s' if n != 1 else ''})" for label, n in counts.most_common())
+
     days = sorted(set().union(*(g.days for g in groups.values())))
     when = f"run {days[0]}" + (f" to {days[-1]}" if len(days) > 1 else "") + "; " if days else ""
-    return when + "code: " + ", ".join(f"{label} ({n} cell{'s' if n != 1 else ''})" for label, n in counts.most_common())
+    return when + "code: " + counted("code") + "; machines: " + counted("machines")
 
 
 def write_page(output_dir: str | Path, path: str | Path, command: str = "kneas-bench page") -> Path:

@@ -15,6 +15,7 @@ import torch
 
 from ..console import console, say
 from .code_version import code_version
+from .machine import machine_record
 from .progress import _duration, summary_table
 from .run_dir import write_json
 
@@ -47,7 +48,7 @@ def _common(config, scene, evaluation, device) -> tuple[dict, dict]:
     out = {**headline, "method": config.method, "scene": scene.name, "views": len(scene.train)}
     # the thread count changes the order of floating-point sums, so a neural run's figures follow it as they follow the seed
     facts = {"preset": config.preset, "scene_source": scene.source, "device": str(device), "threads": torch.get_num_threads(),
-             "code": code_version()}
+             "code": code_version(), "machine": machine_record(device)}
     notes = scene_notes(scene)
     if notes:
         facts["notes"] = notes
