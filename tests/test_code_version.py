@@ -1,3 +1,4 @@
+import json
 import shutil
 import subprocess
 
@@ -5,6 +6,8 @@ import pytest
 
 from kneas_method import __version__
 from kneas_method.engine.code_version import PACKAGE_DIR, code_version, describe
+
+from conftest import run, run_dir_of
 
 needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
 
@@ -60,20 +63,29 @@ def test_this_install_is_described():
     assert set(code) <= {"kneas", "commit", "modified"}
 
 
-def test_a_run_keeps_the_code_it_started_with(tmp_path, monkeypatch):
-    """The record is taken when the run folder is made: a checkout that moves on while the run
-    trains (a commit between two benchmark cells) does not relabel the run."""
+def test_a_run_keeps_the_code_it_started_with(tiny_scene, tmp_path, capsys, monkeypatch):
+    """The record is taken as the run starts: a checkout that moves on while the run trains (a commit
+    between two benchmark cells) does not relabel the run in its metrics.json."""
     from kneas_method.engine import code_version as cv
-    from kneas_method.engine.run_dir import create_run_dir
+    from kneas_method.engine import pipeline
 
     head = {"commit": "a" * 40}
     answers = {"rev-parse --show-toplevel": lambda: str(PACKAGE_DIR.parent), "rev-parse HEAD": lambda: head["commit"],
                "status --porcelain --untracked-files=no -- .": lambda: ""}
     monkeypatch.setattr(cv, "_git", lambda root, *args: answers[" ".join(args)]())
+    fitting_scene = pipeline.fitting_scene
+
+    def moves_on(scene, **kw):  # the checkout moves on once the run has started
+        head["commit"] = "b" * 40
+        return fitting_scene(scene, **kw)
+
+    monkeypatch.setattr(pipeline, "fitting_scene", moves_on)
     code_version.cache_clear()
     try:
-        create_run_dir(tmp_path, "foot", "k-neas")
-        head["commit"] = "b" * 40  # the checkout moves on mid-run
-        assert code_version()["commit"] == "a" * 40
+        code, out, err = run(["fdk", "--scene", str(tiny_scene), "--output-dir", str(tmp_path)], capsys)
+        assert code == 0, err
+        assert head["commit"] == "b" * 40  # the checkout did move during the run
+        metrics = json.loads((run_dir_of(out) / "metrics.json").read_text())
+        assert metrics["code"]["commit"] == "a" * 40
     finally:
         code_version.cache_clear()

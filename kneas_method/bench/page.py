@@ -365,7 +365,7 @@ def _render_table(output_dir, layout: str, cells: list, paper_table, paper_title
     seconds, done = sum(g.seconds for g in groups.values()), sum(g.done for g in groups.values())
     ours = aggregate.to_markdown(table, groups).replace(f"## {table.title}", f"### Ours: {table.title}", 1)
     parts += [f"{done} of {len(cells)} cells complete, {format_seconds(seconds)} of recorded run time"
-              + (f"; {code_line(groups)}." if done else "."), "", ours,
+              + (f"; {provenance_line(groups)}." if done else "."), "", ours,
               f"### {paper_title}", "", paper_table(), "", "### Claims", ""]
     verdicts = VERDICTS[layout](cells, groups)
     for v in verdicts:
@@ -375,7 +375,7 @@ def _render_table(output_dir, layout: str, cells: list, paper_table, paper_title
     return verdict_counts
 
 
-def code_line(groups: dict[tuple, Group]) -> str:
+def provenance_line(groups: dict[tuple, Group]) -> str:
     """When, on which code and on which machines the complete cells ran: ``run 2026-12-04 to 2026-12-06;
     code: <commit> (n cells), not recorded (m cells); machines: <processor, cores, torch> (n cells), ...``,
     most cells first."""

@@ -28,6 +28,7 @@ from ..console import say
 from ..errors import ConfigError
 from ..data.truncation import fitting_scene
 from . import report
+from .code_version import code_version
 from ..device import resolve_device
 from .loading import load_scene
 from .run_dir import check_writable, create_run_dir, read_json, save_run_config
@@ -36,6 +37,9 @@ from .run_dir import check_writable, create_run_dir, read_json, save_run_config
 def train(config) -> int:
     """Run one resolved config (train or reconstruct, then evaluate); returns the exit code."""
     started = time.perf_counter()
+    # the code record (cached for the process) is taken as the run starts, so a checkout that moves on
+    # while the run trains does not relabel it with the later commit
+    code_version()
     device = resolve_device(config.device)
     if config.resume:
         run_dir = Path(config.resume)

@@ -23,7 +23,6 @@ from typing import Any
 
 from ..atomic import atomic_write
 from ..errors import KneasError
-from .code_version import code_version
 
 MIN_FREE_BYTES = 200 * 1024 * 1024
 
@@ -61,11 +60,7 @@ def check_writable(folder: str | Path, needed_bytes: int = MIN_FREE_BYTES, flag:
 
 def create_run_dir(output_dir: str | Path, scene: str, method: str, needed_bytes: int = MIN_FREE_BYTES) -> Path:
     """A new run folder ``output_dir/<scene>/<method>/<timestamp>[-N]`` holding an empty ``figures/``
-    (``checkpoints/`` is made by the first checkpoint).
-
-    The code record (:func:`.code_version.code_version`, cached for the process) is taken here, so a
-    checkout that moves on while the run trains does not relabel the run with the later commit."""
-    code_version()
+    (``checkpoints/`` is made by the first checkpoint)."""
     parent = check_writable(Path(output_dir) / safe_name(scene) / safe_name(method), needed_bytes)
     base = timestamp()
     for n in range(1000):
