@@ -48,7 +48,7 @@ import torch.nn.functional as F
 
 from ..errors import KneasError
 
-__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "band_cgls", "band_fields", "interpolate_fields",
+__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "at_noise", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
@@ -114,6 +114,14 @@ def noise_variance(residual: torch.Tensor) -> float:
     if h.numel() == 0:
         return 0.0
     return float((MAD_TO_STD * h.abs().median()) ** 2)
+
+
+def at_noise(residual: torch.Tensor, noise_factor: float) -> tuple[bool, float, float]:
+    """Whether projections ``residual [N, nV, nU]`` are at the data's noise: their mean square within
+    ``noise_factor`` times :func:`noise_variance` (the discrepancy principle). Returns that, the mean
+    square and the noise variance."""
+    sigma2, mean_square = noise_variance(residual), float((residual * residual).mean())
+    return mean_square <= noise_factor * sigma2, mean_square, sigma2
 
 
 def band_cgls(A, r: torch.Tensor, weights: torch.Tensor, iterations: int,
@@ -352,8 +360,8 @@ def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geom
 
     A = projector(1)
     r = b - A.forward(volume)
-    sigma2, mean_square = noise_variance(r), float((r * r).mean())
-    if mean_square <= noise_factor * sigma2:  # at the noise level already, discretisation error and all: no need to model it
+    level, mean_square, sigma2 = at_noise(r, noise_factor)
+    if level:  # at the noise level already, discretisation error and all: no need to model it
         say(f"residual {mean_square:.3g} (mean square) is at the data's noise ({sigma2:.3g}); nothing to correct")
         return Correction(torch.zeros_like(volume), band, [mean_square], sigma2, time.perf_counter() - t0)
     reused = discretisation is not None

@@ -5,9 +5,15 @@ A neural run's budget counts from the command's start (``engine.pipeline.train``
 first, then the band-correction passes; the classical start and the evaluation never do. A budget
 that binds makes the result depend on the machine's speed, and the run says so.
 
+What training leaves for the stages after it follows the scan. The passes stop at the data's noise, so
+where the classical start's projections already fit the training views to their noise (a noisy scan)
+they are not expected to run, and training leaves the time of the smoothing's and the materials
+refit's fits instead; elsewhere it leaves the passes their share.
+
 * :func:`run_budget`: the seconds a run on a given grid may take.
-* :func:`training_steps`: after ``TIMED_STEPS`` steps, how many training steps leave the passes their
-  time before the budget runs out (training's last thousand steps are worth far less than the passes).
+* :func:`kept_after_training`: the seconds training leaves for the stages after it.
+* :func:`training_steps`: after ``TIMED_STEPS`` steps, how many training steps leave that time before
+  the budget runs out (training's last thousand steps are worth far less than the passes).
 * :func:`pass_fits`: whether one more pass is expected to end in the time left.
 """
 
@@ -35,6 +41,9 @@ PASSES_SHARE = 0.9
 # steps training is cut to (where even that does not fit, the passes give way as well).
 TIMED_STEPS = 100
 MIN_STEPS_SHARE = 0.25
+# The smoothing's seconds besides its fit: the model's volume, the filters SURE compares and their
+# projections (5-25 s on a noisy 128^3 scan on 2 cores).
+SMOOTHING_CHOICE_S = 25.0
 
 
 def run_budget(time_budget: Optional[float], n_voxel) -> Optional[float]:
@@ -46,16 +55,23 @@ def run_budget(time_budget: Optional[float], n_voxel) -> Optional[float]:
     return float(time_budget) * max(1.0, math.prod(int(n) for n in n_voxel) / BUDGET_VOXELS)
 
 
-def training_steps(left: float, step: int, total: int, seconds_per_step: float, steps_per_epoch: int, passes: bool) -> int:
-    """The training steps (whole epochs of ``steps_per_epoch``) that end with time left for the passes.
+def kept_after_training(seconds_per_step: float, total: int, *, passes: bool, fit_steps: int = 0,
+                        seconds: float = 0.0) -> float:
+    """Seconds training leaves for the stages after it: ``PASSES_SHARE`` x the whole training's time
+    (``total`` steps at ``seconds_per_step``) where band-correction passes are expected to run (``passes``),
+    and ``fit_steps`` more steps at that rate plus ``seconds`` for the later stages' fits and mixtures."""
+    return ((PASSES_SHARE * int(total) if passes else 0.0) + int(fit_steps)) * float(seconds_per_step) + float(seconds)
+
+
+def training_steps(left: float, step: int, total: int, seconds_per_step: float, steps_per_epoch: int, kept: float) -> int:
+    """The training steps (whole epochs of ``steps_per_epoch``) that end with ``kept`` seconds left
+    (:func:`kept_after_training`).
 
     ``left``: seconds until the budget runs out, less ``TIME_RESERVE_S``; ``step`` of ``total`` steps
-    run, at ``seconds_per_step``; ``passes``: whether the run has band-correction passes, taken to cost
-    ``PASSES_SHARE`` x the whole ``total`` steps' time. Returns ``total`` where everything fits, else
-    the most whole epochs that do, at least ``MIN_STEPS_SHARE`` of ``total`` and the epoch under way.
+    run, at ``seconds_per_step``. Returns ``total`` where everything fits, else the most whole epochs
+    that do, at least ``MIN_STEPS_SHARE`` of ``total`` and the epoch under way.
     """
-    kept = PASSES_SHARE * total * seconds_per_step if passes else 0.0
-    fit = step + (left - kept) / max(float(seconds_per_step), 1e-9)
+    fit = step + (left - float(kept)) / max(float(seconds_per_step), 1e-9)
     if fit >= total:
         return int(total)
     least = max(math.ceil(MIN_STEPS_SHARE * total / steps_per_epoch), math.ceil(step / steps_per_epoch), 1)
@@ -77,13 +93,59 @@ def pass_fits(left: float, seconds: Sequence[float], refreshed: Sequence[bool], 
     return not known or max(known) <= left
 
 
+def after_training(state: RunState) -> dict:
+    """What training is to leave for the stages after it in ``state``'s run, as the keyword arguments of
+    :func:`kept_after_training` (less the step's time): whether the correction passes are expected to
+    run, and the later stages' fit steps and other seconds where they are not."""
+    stages, model = state.config.stages, state.trainer.model
+    passes = stages.correction is not None and model.has_surfaces
+    if state.start is None or not model.has_surfaces or not start_at_noise(state):
+        return {"passes": passes}
+    fit_steps, seconds = 0, 0.0
+    if stages.smoothing is not None:
+        fit_steps, seconds = int(stages.smoothing.steps), SMOOTHING_CHOICE_S
+    if stages.materials_refit is not None and state.bounds is not None and state.bounds.details.get("smoothed"):
+        # the refit fits the bounds' mixtures again (as long as they took), and where it finds more materials, a fresh
+        # model for its steps
+        fit_steps += int(stages.materials_refit.steps)
+        seconds += float(state.bounds.details.get("fit_time_s", 0.0))
+    return {"passes": False, "fit_steps": fit_steps, "seconds": round(seconds, 1)}
+
+
+def start_at_noise(state: RunState) -> bool:
+    """Whether the classical start's projections fit the training views to the data's noise (the test the
+    correction's passes stop at, with their ``noise_factor``): then the passes are not expected to run."""
+    import numpy as np
+    import torch
+
+    from ..classical.projector import Projector
+    from .band_correction import at_noise
+    from .correction import CorrectionConfig
+
+    scene, correction = state.scene, state.config.stages.correction
+    factor = float((correction or CorrectionConfig()).noise_factor)
+    volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
+    projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=state.device)
+    if 1 not in state.projectors:
+        state.projectors[1] = Projector(scene.geometry, scene.train.angles, device=state.device)
+    with torch.no_grad():
+        level, mean_square, sigma2 = at_noise(projections - state.projectors[1].forward(volume), factor)
+    state.say(f"time budget: the {state.start[1].upper()} start's residual {mean_square:.3g} (mean square) is "
+              + (f"at the data's noise ({sigma2:.3g}), where the correction passes stop: training leaves time for the smoothing "
+                 "and the materials refit instead" if level else f"above the data's noise ({sigma2:.3g})"))
+    return bool(level)
+
+
 @dataclass
 class TimeBudgetConfig(StageConfig):
     """The whole run within ``seconds``, from the command's start. Training gives way first: after
-    ``TIMED_STEPS`` steps, where the rest of them and the band-correction passes (taken as
-    ``PASSES_SHARE`` x the whole training's time) would not end ``TIME_RESERVE_S`` before the budget
-    runs out, training is cut to the whole epochs that do (a quarter of them at least; ``config.json``
-    says so). Then the passes: one not expected to end ``TIME_RESERVE_S`` before it is not started.
+    ``TIMED_STEPS`` steps, where the rest of them and the stages after them would not end
+    ``TIME_RESERVE_S`` before the budget runs out, training is cut to the whole epochs that do (a
+    quarter of them at least; ``config.json`` says so). The stages after training are taken as the
+    band-correction passes (``PASSES_SHARE`` x the whole training's time), or where the classical
+    start already fits the views to the data's noise (where the passes stop), as the smoothing's and
+    the materials refit's fits. Then the passes: one not expected to end ``TIME_RESERVE_S`` before it
+    is not started.
     The budget is for a grid of 128^3 voxels or fewer; a larger grid gets it in proportion.
 
     Attributes:
@@ -106,8 +168,12 @@ class TimeBudget(Stage):
         budget = run_budget(self.config.seconds, state.scene.geometry.n_voxel)
         state.deadline = state.started + budget
         state.records.setdefault(self.name, {"time_budget_s": round(budget, 1), "training": None})
-        passes = state.config.stages.correction is not None and state.trainer.model.has_surfaces
         trainer = state.trainer
+        if trainer.step >= trainer.total_steps:
+            return  # a resumed run past its training: the passes check the deadline themselves
+        plan = state.records[self.name].get("after_training")
+        if plan is None:
+            plan = state.records[self.name]["after_training"] = after_training(state)
         check_at = trainer.step + TIMED_STEPS
 
         def shorten_if_needed(trainer) -> None:
@@ -115,17 +181,22 @@ class TimeBudget(Stage):
                 return
             now = time.perf_counter()
             per_step = (now - trainer.train_started_at) / TIMED_STEPS
+            kept = kept_after_training(per_step, trainer.total_steps, **plan)
             fits = training_steps(state.deadline - TIME_RESERVE_S - now, trainer.step, trainer.total_steps, per_step,
-                                  trainer.steps_per_epoch, passes)
+                                  trainer.steps_per_epoch, kept)
             if fits < trainer.total_steps:
                 planned = trainer.epochs
                 trainer.shorten(fits)
                 state.records[self.name]["training"] = {"epochs_planned": planned, "epochs": trainer.epochs,
                                                         "seconds_per_step": round(float(per_step), 5),
-                                                        "seconds_left": round(float(state.deadline - now), 1)}
+                                                        "seconds_left": round(float(state.deadline - now), 1),
+                                                        "seconds_kept": round(float(kept), 1)}
+                after = ("leave the band-correction passes their time" if plan["passes"] else
+                         "leave the smoothing and the materials refit their time" if plan.get("fit_steps") else
+                         "end within it")
                 trainer.say(f"{trainer.label}: the run's time budget (--stages.time-budget.seconds; --skip-stages time-budget for none) "
                             f"has {state.deadline - now:.0f} s left, and a step takes {per_step:.3f} s: {trainer.total_steps} of the "
-                            f"{planned * trainer.steps_per_epoch} steps ({trainer.epochs} of {planned} epochs) leave the "
-                            "band-correction passes their time, so training is shortened to them")
+                            f"{planned * trainer.steps_per_epoch} steps ({trainer.epochs} of {planned} epochs) {after}, "
+                            "so training is shortened to them")
 
         state.step_hooks.append(shorten_if_needed)
