@@ -48,12 +48,14 @@ import torch.nn.functional as F
 
 from ..errors import KneasError
 
-__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "at_noise", "band_cgls", "band_fields", "interpolate_fields",
+__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "NOISE_FACTOR", "at_noise", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
 
 MAD_TO_STD = 1.4826  # median absolute deviation -> standard deviation, normal noise
+# A residual within this factor of the noise variance is at the data's noise (the passes' default stop).
+NOISE_FACTOR = 1.5
 QUERY_CHUNK = 32768  # points per model query: 2x faster on a CPU than 262144 (cache)
 INTERPOLATION_CHUNK = 1 << 18  # fine points per interpolation of the queried fields
 FINE_VOXELS_AT_MOST = 1 << 27  # the finer grid's voxels (512^3: 0.5 GB in float32)
@@ -116,7 +118,7 @@ def noise_variance(residual: torch.Tensor) -> float:
     return float((MAD_TO_STD * h.abs().median()) ** 2)
 
 
-def at_noise(residual: torch.Tensor, noise_factor: float) -> tuple[bool, float, float]:
+def at_noise(residual: torch.Tensor, noise_factor: float = NOISE_FACTOR) -> tuple[bool, float, float]:
     """Whether projections ``residual [N, nV, nU]`` are at the data's noise: their mean square within
     ``noise_factor`` times :func:`noise_variance` (the discrepancy principle). Returns that, the mean
     square and the noise variance."""
@@ -309,7 +311,7 @@ class Correction:
 
 @torch.no_grad()
 def band_correction(model, volume: torch.Tensor, projections: torch.Tensor, geometry, angles, *, iterations: int,
-                    noise_factor: float = 1.5, fine: int = 3, sharpen: float = 2.0,
+                    noise_factor: float = NOISE_FACTOR, fine: int = 3, sharpen: float = 2.0,
                     gradient: float = 0.02, dilate: int = 1, weighting: str = "ring", ring: Optional[float] = None,
                     discretisation: Optional[torch.Tensor] = None,
                     projectors: Optional[dict] = None, progress: Optional[Callable[[str], None]] = None) -> Correction:

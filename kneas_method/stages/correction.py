@@ -22,6 +22,7 @@ import torch
 from ..config import at_least
 from ..errors import ConfigError
 from .base import RunState, Stage, StageConfig
+from .band_correction import NOISE_FACTOR
 from .time_budget import TIME_RESERVE_S, pass_fits
 from .volume_fit import fit_in_region
 
@@ -62,7 +63,7 @@ class CorrectionConfig(StageConfig):
     weights: CorrectionWeights = "ring"
     ring: float = field(default=0.5, metadata=at_least(0, at_most=1))
     refresh: int = field(default=3, metadata=at_least(1, whole=True))
-    noise_factor: float = field(default=1.5, metadata=at_least(0))
+    noise_factor: float = field(default=NOISE_FACTOR, metadata=at_least(0))
     steps: int = field(default=75, metadata=at_least(0, whole=True))
     lr: float = field(default=1e-4, metadata=at_least(0))
     points: int = field(default=8192, metadata=at_least(1, whole=True))

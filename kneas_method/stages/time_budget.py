@@ -119,11 +119,10 @@ def start_at_noise(state: RunState) -> bool:
     import torch
 
     from ..classical.projector import Projector
-    from .band_correction import at_noise
-    from .correction import CorrectionConfig
+    from .band_correction import NOISE_FACTOR, at_noise
 
     scene, correction = state.scene, state.config.stages.correction
-    factor = float((correction or CorrectionConfig()).noise_factor)
+    factor = NOISE_FACTOR if correction is None else float(correction.noise_factor)
     volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
     projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=state.device)
     if 1 not in state.projectors:
