@@ -136,6 +136,14 @@ class RunState:
         self.moved_region = None
         return self.volume
 
+    def projector(self):
+        """The scene grid's projector at the training views (built once, shared by the stages that project)."""
+        from ..classical.projector import Projector
+
+        if 1 not in self.projectors:
+            self.projectors[1] = Projector(self.scene.geometry, self.scene.train.angles, device=self.device)
+        return self.projectors[1]
+
     def score(self, after: str, volume=None) -> Optional[dict]:
         """Score the volume ``after`` a stage left (``volume``, numpy or tensor; by default the model's as
         :meth:`model_volume` holds it, queried again where a fit moved the field)

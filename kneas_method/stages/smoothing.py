@@ -109,8 +109,6 @@ def describe_choice(choice) -> list[str]:
 
 class Smoothing(Stage):
     def run(self, state: RunState) -> None:
-        from ..classical.projector import Projector
-
         c, trainer, scene = self.config, state.trainer, state.scene
         if state.records.get(self.name) is not None:
             state.say(f"smoothing: already done for this run (checkpoint {trainer.last_checkpoint})")
@@ -118,9 +116,7 @@ class Smoothing(Stage):
         started = time.perf_counter()
         volume = state.model_volume()
         projections = torch.as_tensor(scene.train.projections, dtype=torch.float32, device=volume.device)
-        if 1 not in state.projectors:
-            state.projectors[1] = Projector(scene.geometry, scene.train.angles, device=volume.device)
-        smoothed, choice = smooth_against_views(volume, projections, state.projectors[1], c.rule)
+        smoothed, choice = smooth_against_views(volume, projections, state.projector(), c.rule)
         for line in describe_choice(choice):
             state.say("smoothing: " + line)
         if choice.filter != "none":

@@ -118,20 +118,17 @@ def start_at_noise(state: RunState) -> bool:
     import numpy as np
     import torch
 
-    from ..classical.projector import Projector
     from .band_correction import NOISE_FACTOR, at_noise
 
     scene, correction = state.scene, state.config.stages.correction
     factor = NOISE_FACTOR if correction is None else float(correction.noise_factor)
     volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
     projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=state.device)
-    if 1 not in state.projectors:
-        state.projectors[1] = Projector(scene.geometry, scene.train.angles, device=state.device)
     with torch.no_grad():
-        level, mean_square, sigma2 = at_noise(projections - state.projectors[1].forward(volume), factor)
+        level, mean_square, sigma2 = at_noise(projections - state.projector().forward(volume), factor)
     state.say(f"time budget: the {state.start[1].upper()} start's residual {mean_square:.3g} (mean square) is "
-              + (f"at the data's noise ({sigma2:.3g}), where the correction passes stop: training leaves time for the smoothing "
-                 "and the materials refit instead" if level else f"above the data's noise ({sigma2:.3g})"))
+              + (f"at the data's noise ({sigma2:.3g}), where the correction passes stop: training leaves time for the fits "
+                 "after them instead" if level else f"above the data's noise ({sigma2:.3g})"))
     return bool(level)
 
 
