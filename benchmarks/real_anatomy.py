@@ -28,6 +28,9 @@ Scenes:
   has detail finer than any grid; projected from 1.8 times finer voxels, the views differ from the
   truth's own projections by 0.7 % of their mean, and SART and CGLS stop improving after 7 and 21
   iterations, as they do on a scanner's data.
+* ``ts-chest-fine-lowdose``, ``ts-abdomen-lowdose``, ``ts-abdomen-highdose``: other doses (added on
+  2026-12-07): ``ts-chest-fine``'s and ``ts-abdomen``'s views with 2.5e4 photons a pixel (four times the
+  noisy scans' noise variance) and ``ts-abdomen``'s with 1e6 (a tenth of it), electronic σ 10.
 
 **Materials.** Real anatomy has no analytic surfaces, so the truth's materials are thresholds of the
 true volume in HU (``HU_THRESHOLDS``): lung and other gas-filled tissue from -900 HU (the air outside
@@ -52,10 +55,13 @@ import numpy as np
 PACKAGE, VERSION = "TotalSegmentator", "2.18.0"
 SDIST = f"totalsegmentator-{VERSION}.tar.gz"
 SOURCES = {"chest": "tests/reference_files/aorta_report/example_ct.nii.gz", "abdomen": "tests/reference_files/example_ct.nii.gz"}
-# (name, source, longest side in voxels or None for the CT's own grid, noise, views projected from the CT's own grid)
-SCENES = (("ts-chest", "chest", 128, False, False), ("ts-abdomen", "abdomen", None, False, False),
-          ("ts-chest-noisy", "chest", 128, True, False), ("ts-abdomen-noisy", "abdomen", None, True, False),
-          ("ts-chest-fine", "chest", 128, False, True), ("ts-chest-fine-noisy", "chest", 128, True, True))
+# (name, source, longest side in voxels or None for the CT's own grid, photons per pixel or None for a clean
+# scan, views projected from the CT's own grid)
+SCENES = (("ts-chest", "chest", 128, None, False), ("ts-abdomen", "abdomen", None, None, False),
+          ("ts-chest-noisy", "chest", 128, 1e5, False), ("ts-abdomen-noisy", "abdomen", None, 1e5, False),
+          ("ts-chest-fine", "chest", 128, None, True), ("ts-chest-fine-noisy", "chest", 128, 1e5, True),
+          ("ts-chest-fine-lowdose", "chest", 128, 2.5e4, True), ("ts-abdomen-lowdose", "abdomen", None, 2.5e4, False),
+          ("ts-abdomen-highdose", "abdomen", None, 1e6, False))
 HU_THRESHOLDS = (-900.0, -400.0, -30.0, 250.0)
 MATERIALS = ("lung", "fat", "soft tissue", "bone")
 N_DETECTOR, VIEWS = 256, 50
@@ -127,14 +133,14 @@ def real_scene(name: str, sdist: Path):
     spec = {s[0]: s for s in SCENES}
     if name not in spec:
         raise SystemExit(f"error: no real-anatomy scene {name!r}; scenes: {', '.join(spec)}")
-    _, source, longest, noise, fine = spec[name]
+    _, source, longest, photons, fine = spec[name]
     native_hu, native_mm = read_ct(sdist, SOURCES[source])
     hu, voxel_mm = resample(native_hu, native_mm, longest)
     mu = hu_to_mu(hu)
     top = float(mu.max())
     image = (mu / top).astype(np.float32)
     thresholds = [float(v) for v in hu_to_mu(np.array(HU_THRESHOLDS)) / top]
-    cfg = SimulationConfig(n_detector=N_DETECTOR, n_train=VIEWS, n_val=VIEWS, noise=noise)
+    cfg = SimulationConfig(n_detector=N_DETECTOR, n_train=VIEWS, n_val=VIEWS, noise=photons is not None, photons=photons or 1e5)
     meta = {LABEL_THRESHOLDS_KEY: thresholds, MATERIALS_KEY: list(MATERIALS), "hu_thresholds": list(HU_THRESHOLDS),
             "source_ct": f"{SDIST}:{SOURCES[source]}", "convert": True, "normalize": True, "hu_max": float(hu.max())}
     scene = simulate_from_volume(image, cfg, voxel_mm=voxel_mm, name=name, meta=meta)

@@ -186,11 +186,14 @@ def _select_stages(config: TrainConfig, proc: Procedure, surfaces: bool) -> Trai
             stages = dataclasses.replace(stages, **{attr: None})
     config = dataclasses.replace(config, stages=stages)
     running = stage_names(config)
-    for cfg in stage_configs(config):
-        missing = [n for n in type(cfg).needs if n not in running]
-        if missing:
-            raise ConfigError(f"stage {type(cfg).name} works on the {' and '.join(missing)} stage's result, which this run leaves out; "
-                              f"add --skip-stages {type(cfg).name} too, or keep {' '.join(missing)}")
+    orphans = {type(cfg).name: [n for n in type(cfg).needs if n not in running] for cfg in stage_configs(config)}
+    orphans = {name: missing for name, missing in orphans.items() if missing}
+    if orphans:  # every stage left without what it works on, in one line
+        missing = sorted({n for m in orphans.values() for n in m})
+        names = list(orphans)
+        which = f"stage {names[0]} works" if len(names) == 1 else f"stages {', '.join(names[:-1])} and {names[-1]} work"
+        raise ConfigError(f"{which} on the {' and '.join(missing)} stage's result, which this run leaves out; "
+                          f"add --skip-stages {' '.join(names)} too, or keep {' '.join(missing)}")
     return config
 
 

@@ -35,6 +35,7 @@ import torch
 from ..errors import KneasError
 from ..evaluation.metrics import psnr2d
 from .checkpoint import load_latest_checkpoint, save_checkpoint
+from .optim import adam
 from .progress import format_losses, stage_progress
 
 
@@ -167,7 +168,7 @@ class Trainer:
     def _make_optimizer(self) -> None:
         """A fresh Adam optimiser over the model's parameters and the learning-rate schedule."""
         t = self.config.trainer
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(t.lr))
+        self.optimizer = adam(self.model.parameters(), lr=float(t.lr))
         self.decay_step = int(round(float(t.lr_decay_at) * self.total_steps))
         factor = float(t.lr_decay_factor)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: factor if s >= self.decay_step else 1.0)

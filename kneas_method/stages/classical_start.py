@@ -8,6 +8,9 @@ Where the object is wider than the detector's field of view (``data.truncation.F
 the start is run further (:func:`start_options`): a neural run keeps the start's values where the
 views say little (outside the field of view), and ASD-POCS run on spreads less into the air there.
 On fewer views than 50 it is run further too, to the single-view updates its count makes on 50.
+
+:func:`start_fit` says whether the start's projections already fit the training views to their noise
+(a noisy scan), which the later stages' choices follow.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -58,6 +62,32 @@ def start_options(algorithm: str, options: ReconstructionOptions, wider_than_vie
     if algorithm in VIEW_UPDATE_ALGORITHMS and options.subsets is None and n_views >= 1:
         count = max(count, math.ceil(default * VIEW_UPDATE_VIEWS / n_views))
     return options if count == default else dataclasses.replace(options, iterations=count)
+
+
+def start_fit(state: RunState) -> Optional[dict]:
+    """How the classical start's projections fit the training views: their residual's mean square, the
+    noise variance the band-correction passes estimate, and whether the first is within the passes'
+    ``noise_factor`` times the second (``band_correction.at_noise``, the test the passes stop at: a noisy
+    scan). Computed once a run and kept in ``records["classical-start"]["fit"]``; None without a start."""
+    if state.start is None:
+        return None
+    record = state.records.setdefault("classical-start", {})
+    if "fit" not in record:
+        import torch
+
+        from .band_correction import NOISE_FACTOR, at_noise
+
+        correction = state.config.stages.correction
+        factor = NOISE_FACTOR if correction is None else float(correction.noise_factor)
+        volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
+        projections = torch.as_tensor(np.asarray(state.scene.train.projections, dtype=np.float32), device=state.device)
+        with torch.no_grad():
+            level, mean_square, sigma2 = at_noise(projections - state.projector().forward(volume), factor)
+        record["fit"] = {"mean_square": float(mean_square), "noise_variance": float(sigma2), "at_noise": bool(level)}
+        state.say(f"classical start: the {state.start[1].upper()} volume's residual {mean_square:.3g} (mean square) is "
+                  + (f"at the data's noise ({sigma2:.3g}): the views hold nothing more it could fit" if level
+                     else f"above the data's noise ({sigma2:.3g})"))
+    return record["fit"]
 
 
 def classical_volume(algorithm: str, options: ReconstructionOptions, scene, run_dir: Path, device) -> Reconstruction:

@@ -26,6 +26,7 @@ from typing import Optional, Sequence
 
 from ..config import at_least
 from .base import RunState, Stage, StageConfig
+from .classical_start import start_fit
 
 # Seconds of a run's time budget kept for what follows the passes: the smoothing (a projection and
 # SURE; on a noisy scan its fit), the materials refit's mixtures, the evaluation and the report (about
@@ -99,8 +100,11 @@ def after_training(state: RunState) -> dict:
     run, and the later stages' fit steps and other seconds where they are not."""
     stages, model = state.config.stages, state.trainer.model
     passes = stages.correction is not None and model.has_surfaces
-    if state.start is None or not model.has_surfaces or not start_at_noise(state):
+    fit = start_fit(state) if model.has_surfaces else None
+    if fit is None or not fit["at_noise"]:
         return {"passes": passes}
+    state.say("time budget: the start fits the views to their noise, where the correction passes stop: training leaves "
+              "time for the fits after them instead")
     fit_steps, seconds = 0, 0.0
     if stages.smoothing is not None:
         fit_steps, seconds = int(stages.smoothing.steps), SMOOTHING_CHOICE_S
@@ -110,26 +114,6 @@ def after_training(state: RunState) -> dict:
         fit_steps += int(stages.materials_refit.steps)
         seconds += float(state.bounds.details.get("fit_time_s", 0.0))
     return {"passes": False, "fit_steps": fit_steps, "seconds": round(seconds, 1)}
-
-
-def start_at_noise(state: RunState) -> bool:
-    """Whether the classical start's projections fit the training views to the data's noise (the test the
-    correction's passes stop at, with their ``noise_factor``): then the passes are not expected to run."""
-    import numpy as np
-    import torch
-
-    from .band_correction import NOISE_FACTOR, at_noise
-
-    scene, correction = state.scene, state.config.stages.correction
-    factor = NOISE_FACTOR if correction is None else float(correction.noise_factor)
-    volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
-    projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=state.device)
-    with torch.no_grad():
-        level, mean_square, sigma2 = at_noise(projections - state.projector().forward(volume), factor)
-    state.say(f"time budget: the {state.start[1].upper()} start's residual {mean_square:.3g} (mean square) is "
-              + (f"at the data's noise ({sigma2:.3g}), where the correction passes stop: training leaves time for the fits "
-                 "after them instead" if level else f"above the data's noise ({sigma2:.3g})"))
-    return bool(level)
 
 
 @dataclass

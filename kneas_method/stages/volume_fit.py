@@ -17,6 +17,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
+from ..engine.optim import adam
 from ..engine.progress import format_losses, stage_progress
 from ..errors import KneasError
 
@@ -46,7 +47,7 @@ def fit_steps(trainer, points: torch.Tensor, targets: torch.Tensor, draw: Callab
         inside = model.occupied(points)
         queried = None if inside is None else inside > 0
     voxel = float(min(trainer.scene.geometry.d_voxel))
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    optimizer = adam(model.parameters(), lr=lr)
     model.train()
     values: dict[str, float] = {}
     with stage_progress(trainer.console) as progress:
