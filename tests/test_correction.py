@@ -468,7 +468,7 @@ def test_older_band_settings_read_as_ring_weights():
 
 def test_correction_settings_that_cannot_apply_are_refused(tmp_path, capsys):
     code, out, err = run(["naf", "--scene", "foot", "--preset", "cpu", "--dry-run"], capsys)
-    assert code == 0 and "stages: classical-start, table-size, time-budget, warm-start, anchor" in out  # no surfaces: no correction
+    assert code == 0 and "stages: classical-start, time-budget, warm-start, anchor" in out  # no surfaces: no correction
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", "--stages.correction.refresh", "0", "--dry-run"], capsys)
     assert code != 0 and "--stages.correction.refresh must be a whole number >= 1, got 0" in err and "Traceback" not in err
     for flag, value, rule in (("--stages.correction.passes", "-1", "a whole number >= 1"), ("--stages.correction.lr", "-1e-4", "a number >= 0"),

@@ -110,8 +110,8 @@ def test_each_stage_left_out_end_to_end(stage, tiny_scene, tmp_path, capsys):
 def test_a_stage_without_the_stage_it_works_on_is_refused(capsys, tmp_path):
     code, out, err = run(["k-neas", "--preset", "tiny", "--procedure", "refine-classical", "--skip-stages", "classical-start",
                           "--dry-run"], capsys)
-    assert code == 2 and "stages table-size, warm-start and anchor work on the classical-start stage's result" in err
-    assert "add --skip-stages table-size warm-start anchor too" in err and len(err.strip().splitlines()) == 1
+    assert code == 2 and "stages warm-start and anchor work on the classical-start stage's result" in err
+    assert "add --skip-stages warm-start anchor too" in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize("argv,words", [

@@ -471,7 +471,7 @@ def test_k_neas_with_fdk_bounds_and_warm_start(small_scene, tmp_path, capsys):
     assert fdk.shape == (24, 24, 24) and np.isfinite(fdk).all()
     metrics = json.loads((run_dir / "metrics.json").read_text())
     stages = metrics["stages"]
-    assert list(stages) == ["classical-start", "table-size", "warm-start", "anchor"] and stages["classical-start"]["algorithm"] == "fdk"
+    assert list(stages) == ["classical-start", "warm-start", "anchor"] and stages["classical-start"]["algorithm"] == "fdk"
     assert stages["warm-start"]["seconds"] > 0 and stages["classical-start"]["seconds"] > 0
     assert metrics["bounds_time_s"] == pytest.approx(bounds["fit_time_s"]) and metrics["bounds_time_s"] > 0
     assert metrics["loss_scale"] == 1.0  # a NAF-normalised scan: its losses as they were (engine.loss_scale)

@@ -4,7 +4,6 @@ with a small typed config and one interface (``base``).
 Stages, by the phase they run at:
 
 * ``classical-start`` (start): a classical reconstruction of the training views (``classical_start``);
-* ``table-size`` (start): the hash table raised on a clean scan (``table_size``);
 * ``time-budget`` (before training): the whole run within a number of seconds (``time_budget``);
 * ``warm-start`` (before training): the fresh model fitted to the classical start (``warm_start``);
 * ``anchor`` (before training): the classical start kept as a prior during training (``anchor``);
@@ -32,7 +31,6 @@ from .correction import CorrectionConfig
 from .materials_refit import MaterialsRefitConfig
 from .procedures import PAPER, REFINE_CLASSICAL, Procedure
 from .smoothing import SmoothingConfig
-from .table_size import TableSizeConfig
 from .time_budget import TimeBudgetConfig
 from .warm_start import WarmStartConfig
 
@@ -50,7 +48,6 @@ class StagesConfig:
 
     Attributes:
         classical_start: the classical reconstruction the bounds, the warm start and the anchor use.
-        table_size: the model's hash table, raised where the start is above the data's noise.
         time_budget: the whole run within a number of seconds.
         warm_start: the fresh model fitted to the classical start before training.
         anchor: the classical start kept as a prior during training.
@@ -61,7 +58,6 @@ class StagesConfig:
     """
 
     classical_start: Annotated[Optional[ClassicalStartConfig], _Part] = field(default_factory=ClassicalStartConfig)
-    table_size: Annotated[Optional[TableSizeConfig], _Part] = field(default_factory=TableSizeConfig)
     time_budget: Annotated[Optional[TimeBudgetConfig], _Part] = field(default_factory=TimeBudgetConfig)
     warm_start: Annotated[Optional[WarmStartConfig], _Part] = field(default_factory=WarmStartConfig)
     anchor: Annotated[Optional[AnchorConfig], _Part] = field(default_factory=AnchorConfig)

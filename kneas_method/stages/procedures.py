@@ -9,7 +9,7 @@ registers its own under the ``kneas.procedures`` entry-point group.
 * ``paper``: the paper's (SPEC §3-4): a NeAS-1M prior, GMM bounds on its volume (K = 1..4 by BIC),
   then training. No stage outside the core.
 * ``refine-classical``: the model refines a classical reconstruction: bounds from the histogram
-  peaks of an ASD-POCS start, a larger hash table where the start is above the data's noise, the model warm-started from it and anchored to it during training
+  peaks of an ASD-POCS start, the model warm-started from it and anchored to it during training
   (sampling only in the visual hull), then band-correction passes, SURE smoothing and, on a noisy
   scan, the materials found again; all within a time budget.
 """
@@ -57,10 +57,9 @@ PAPER = Procedure(
 # sharper start (s = 100) and a later learning-rate step suit a model warm-started from a volume.
 REFINE_CLASSICAL = Procedure(
     name="refine-classical",
-    description="the model refines an ASD-POCS start: bounds from its histogram's peaks, a larger hash table on a clean scan, "
-                "a warm start and an anchor to it, "
+    description="the model refines an ASD-POCS start: bounds from its histogram's peaks, a warm start and an anchor to it, "
                 "the visual hull, band-correction passes, SURE smoothing, the materials refit on noisy scans, a time budget",
-    stages=("classical-start", "table-size", "time-budget", "warm-start", "anchor", "correction", "smoothing", "materials-refit"),
+    stages=("classical-start", "time-budget", "warm-start", "anchor", "correction", "smoothing", "materials-refit"),
     settings={
         "model": {"s_init": 100.0, "lambda_eikonal": 1e-5, "occupancy_grid": True},
         "trainer": {"lr_decay_at": 0.85},

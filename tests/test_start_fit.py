@@ -1,0 +1,61 @@
+"""The classical start's fit to the training views (classical_start.start_fit): at the data's noise for a
+start that leaves only the noise, above it for one far from the views; computed once and recorded."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from conftest import sphere_scene
+from kneas_method.data.simulate import SimulationConfig
+
+SIM = SimulationConfig(n_voxel=16, voxel_mm=8.0, n_detector=24, n_train=8, n_val=2)
+
+
+def _views():
+    """The sphere scene, its exact training views and the same with white noise."""
+    from kneas_method.classical.projector import Projector
+
+    scene = sphere_scene(SIM)
+    truth = np.asarray(scene.image, dtype=np.float32)
+    exact = Projector(scene.geometry, scene.train.angles).forward(torch.as_tensor(truth)).numpy()
+    noisy = exact + np.random.default_rng(0).normal(0.0, 0.05 * float(exact.max()), exact.shape)
+    return scene, truth, exact, noisy.astype(np.float32)
+
+
+def _state(tmp_path, scene, start, projections):
+    import time
+
+    from kneas_method import presets, registry
+    from kneas_method.stages import RunState
+
+    scene.train.projections = np.asarray(projections, dtype=np.float32)
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2))
+    return RunState(config=cfg, scene=scene, run_dir=tmp_path, device="cpu", started=time.perf_counter(), loss_scale=1.0,
+                    say=print, start=(np.asarray(start), "asd-pocs"))
+
+
+def test_a_start_far_from_the_views_is_above_their_noise_and_one_that_leaves_the_noise_is_at_it(tmp_path):
+    from kneas_method.stages.band_correction import NOISE_FACTOR
+    from kneas_method.stages.classical_start import start_fit
+
+    scene, truth, exact, noisy = _views()
+    far = start_fit(_state(tmp_path / "far", scene, truth * 0.5, exact))  # half the truth: the views hold far more
+    assert far["at_noise"] is False and far["mean_square"] > 10 * NOISE_FACTOR * far["noise_variance"]
+    state = _state(tmp_path / "noisy", scene, truth, noisy)  # the truth: only the noise is left
+    fit = start_fit(state)
+    assert fit["at_noise"] is True and fit["mean_square"] <= NOISE_FACTOR * fit["noise_variance"]
+    assert state.records["classical-start"]["fit"] is fit
+
+
+def test_the_starts_fit_is_computed_once_and_none_without_a_start(tmp_path):
+    from kneas_method.stages.classical_start import start_fit
+
+    scene, truth, exact, _ = _views()
+    state = _state(tmp_path, scene, truth * 0.5, exact)
+    fit = start_fit(state)
+    state.start = (np.asarray(truth), "asd-pocs")  # a later call reads the record, not the volume
+    assert start_fit(state) is fit and not fit["at_noise"]
+    assert start_fit(dataclasses.replace(state, records={}, start=None)) is None
