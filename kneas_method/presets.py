@@ -4,8 +4,7 @@ filled by its preset and its procedure, and the whole tree is checked, before an
 - ``paper``: the paper's schedule and architecture exactly (1000 epochs, 512 + 128 rays, 320 / 128
   samples, the full 14-level 2^19 hash grid, exact eikonal on every sample); procedure ``paper``.
 - ``cpu``: a short schedule and a small grid for 2 CPU cores (80 epochs of 128 + 32 rays x 64
-  samples, a 6-level grid hashed into 2^19 entries a level, 32-wide attenuation networks); procedure
-  ``refine-classical``.
+  samples, a 6-level 2^16 grid, 32-wide attenuation networks); procedure ``refine-classical``.
 - ``tiny``: seconds; for tests and smoke runs; procedure ``paper``.
 - ``auto``: ``paper`` when CUDA is available, else ``cpu``; :func:`choose` says which and why.
 
@@ -42,12 +41,11 @@ TABLE: dict[str, dict[str, Any]] = {
                     "eval_chunk": 8192, "eval_views": None, "eval_projections": "rendered"},
     },
     # 2 cores, the torch hash grid: the finest of the 6 levels (scale 1.75) is a cell of about half a
-    # voxel of a 128^3 volume, the three finest hashed into 2^19 entries each (real anatomy's texture; with
-    # the fused Adam a step costs about what 2^16 entries did); the 2D metrics on the held-out views
-    # projected from the model's volume (Joseph), as the classical volumes' are, in seconds instead of minutes.
+    # voxel of a 128^3 volume; the 2D metrics on the held-out views projected from the model's volume
+    # (Joseph), as the classical volumes' are, in seconds instead of minutes.
     "cpu": {
         "procedure": "refine-classical",
-        "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 19, "base_resolution": 16, "per_level_scale": 1.75},
+        "hashgrid": {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.75},
         "attenuation": {"hidden_dim": 32},
         "model": {"num_samples": 64, "num_eval_samples": 64, "eikonal_fraction": 1.0, "quadrature": "bins"},
         "datamanager": {"num_object_rays": 128, "num_air_rays": 32},

@@ -89,7 +89,7 @@ BOUNDS_S = 27.0
 PROBE_POINTS = 10240
 PROBE_REPEATS = 7
 PROBE_REFERENCE_S = 0.021  # 2026-12-04, 2 cores, quiet (the probe on one of them)
-# The probe's grid: the cpu preset's of 2026-12-04, when PROBE_REFERENCE_S was measured (kept, so that the
+# The probe's grid: the cpu preset's of 2026-12-04, when PROBE_REFERENCE_S was measured (fixed, so that the
 # ratio measures the machine, not the preset).
 PROBE_HASHGRID = {"num_levels": 6, "features_per_level": 2, "log2_hashmap_size": 16, "base_resolution": 16, "per_level_scale": 1.75}
 
