@@ -30,7 +30,10 @@ Scenes:
   iterations, as they do on a scanner's data.
 * ``ts-chest-fine-lowdose``, ``ts-abdomen-lowdose``, ``ts-abdomen-highdose``: other doses (added on
   2026-12-07): ``ts-chest-fine``'s and ``ts-abdomen``'s views with 2.5e4 photons a pixel (four times the
-  noisy scans' noise variance) and ``ts-abdomen``'s with 1e6 (a tenth of it), electronic σ 10.
+  noisy scans' noise variance) and ``ts-abdomen``'s with 1e6 (a tenth of it), electronic σ 10;
+  ``ts-chest-fine-highdose``: ``ts-chest-fine``'s views with 1e6 photons; ``ts-chest-fine-3e5``,
+  ``ts-abdomen-3e5``: 3e5 photons; ``ts-chest-highdose``: ``ts-chest``'s views with 1e6 photons (these
+  four added later on 2026-12-07).
 
 **Materials.** Real anatomy has no analytic surfaces, so the truth's materials are thresholds of the
 true volume in HU (``HU_THRESHOLDS``): lung and other gas-filled tissue from -900 HU (the air outside
@@ -61,7 +64,9 @@ SCENES = (("ts-chest", "chest", 128, None, False), ("ts-abdomen", "abdomen", Non
           ("ts-chest-noisy", "chest", 128, 1e5, False), ("ts-abdomen-noisy", "abdomen", None, 1e5, False),
           ("ts-chest-fine", "chest", 128, None, True), ("ts-chest-fine-noisy", "chest", 128, 1e5, True),
           ("ts-chest-fine-lowdose", "chest", 128, 2.5e4, True), ("ts-abdomen-lowdose", "abdomen", None, 2.5e4, False),
-          ("ts-abdomen-highdose", "abdomen", None, 1e6, False))
+          ("ts-abdomen-highdose", "abdomen", None, 1e6, False), ("ts-chest-fine-highdose", "chest", 128, 1e6, True),
+          ("ts-chest-fine-3e5", "chest", 128, 3e5, True), ("ts-abdomen-3e5", "abdomen", None, 3e5, False),
+          ("ts-chest-highdose", "chest", 128, 1e6, False))
 HU_THRESHOLDS = (-900.0, -400.0, -30.0, 250.0)
 MATERIALS = ("lung", "fat", "soft tissue", "bone")
 N_DETECTOR, VIEWS = 256, 50
