@@ -251,66 +251,6 @@ def test_a_stronger_choice_refused_keeps_the_last_one_within_the_noise():
     assert [m for m, _, _ in choice.misfit] == list(NOISE_SCALES[:2]) and choice.refused == choice.misfit[1][1]
 
 
-def test_a_volume_that_does_not_fit_the_data_to_their_noise_is_not_smoothed():
-    """A volume whose projections misfit the data by more than their noise has fitted none of the noise:
-    what it lacks is signal, and the filter SURE prefers would take out more. At or under that misfit the
-    same volume is smoothed as before."""
-    from kneas_method.stages.denoise import FIT_AT_MOST
-    from kneas_method.stages.smoothing import describe_choice
-
-    clean = _balls()
-    noisy = torch.as_tensor(clean + _correlated_noise(clean.shape, 0.03, 0.7, seed=5))
-    first, first_choice = sure_smoothing(noisy)
-    assert first_choice.filter != "none"
-    asked = []
-
-    def misfit(own):
-        def f(v):
-            asked.append(v)
-            return own if v is noisy else own + 0.01  # each choice gives up a hundredth of the noise
-        return f
-
-    smoothed, choice = discrepancy_smoothing(noisy, misfit(1.01 * FIT_AT_MOST), data_noise=1.0)
-    assert torch.equal(smoothed, first) and not choice.underfit  # no test asked for: smoothed as before
-    asked.clear()
-    smoothed, choice = discrepancy_smoothing(noisy, misfit(1.01 * FIT_AT_MOST), data_noise=1.0, fit_at_most=FIT_AT_MOST)
-    assert smoothed is noisy and choice.filter == "none" and choice.underfit and choice.refused == first_choice.label
-    assert choice.misfit == [] and len(asked) == 1  # decided on the volume's own misfit alone
-    assert choice.to_json()["underfit"] is True and choice.own_misfit == 1.01 * FIT_AT_MOST
-    words = " ".join(describe_choice(choice))
-    assert "has not fitted their noise" in words and "the volume is left as it is" in words
-    smoothed, choice = discrepancy_smoothing(noisy, misfit(0.99 * FIT_AT_MOST), data_noise=1.0, fit_at_most=FIT_AT_MOST)
-    assert torch.equal(smoothed, first) and choice.label == first_choice.label and not choice.underfit
-    assert choice.to_json()["underfit"] is False
-
-
-def test_only_noisy_views_leave_a_volume_that_misfits_them_unsmoothed(monkeypatch):
-    """Noise-free views (no value below 0) hold no noise a volume could have fitted: there a misfit is the
-    model's own error, which a filter may take out, and the test is not asked for."""
-    import kneas_method.stages.denoise as denoise
-    from kneas_method.stages.smoothing import smooth_against_views
-
-    asked = []
-
-    def record(volume, misfit, data_noise, **options):
-        asked.append(options["fit_at_most"])
-        return volume, denoise.Denoising("none")
-
-    monkeypatch.setattr(denoise, "discrepancy_smoothing", record)
-
-    class Zero:
-        def forward(self, v):
-            return torch.zeros(3, 8, 8)
-
-    rng = np.random.default_rng(0)
-    clean = torch.as_tensor(rng.uniform(0.0, 1.0, (3, 8, 8)), dtype=torch.float32)
-    noisy = clean + torch.as_tensor(rng.normal(0.0, 0.05, (3, 8, 8)), dtype=torch.float32) - 0.2  # air below 0
-    volume = torch.ones(4, 4, 4)
-    smooth_against_views(volume, clean, Zero())
-    smooth_against_views(volume, noisy, Zero())
-    assert asked == [None, denoise.FIT_AT_MOST]
-
-
 def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
     from kneas_method.data.naf import save_naf
     from kneas_method.data.simulate import SimulationConfig

@@ -49,15 +49,6 @@ whose projections fit worse than the unsmoothed volume's by more than that (``GI
 what the data hold, and is refused, as is every stronger choice after it. Measured on the default
 runs (2026-12-05): noisy scans give up 0.01-0.15 of the noise variance, clean real anatomy 2.4-2.9.
 
-And on a noisy scan they tell when there is no noise of the data left to take out: a volume whose own
-projections misfit the data by more than ``FIT_AT_MOST`` times their noise variance has not fitted the
-noise; what it lacks is signal, and smoothing takes out more (the discrepancy principle's other
-side). Such a volume is left as it is (``fit_at_most``). Measured (2026-12-07): the default runs on
-real anatomy whose volume misfit the views by 1.10-1.21 times the noise (3e5-1e6 photons a pixel)
-lost 0.40-0.62 dB to the smoothing; those at 0.94-1.06 (1e5 photons or fewer) gained 0.18-5.4 dB. On a
-noise-free scan the "noise" is the model's own error, which a filter may take out (K = 1 and NeAS-1M
-models of the phantoms gain 0.7-1.1 dB at misfits of 1.3-1.8), so the test is for noisy views only.
-
 The pure functions take and return tensors; :func:`gaussian_blur` is separable (three 1-D passes,
 the volume's border repeated); ``tests/test_denoise.py`` has naive versions as oracles.
 """
@@ -76,7 +67,7 @@ from .band_correction import MAD_TO_STD
 
 __all__ = ["OFFSETS", "SIGMAS", "BILATERALS", "gaussian_taps", "gaussian_blur", "bilateral", "shifted_pairs",
            "robust_variance", "noise_autocovariance", "correlated_noise", "sure", "monte_carlo_sure", "sure_smoothing",
-           "discrepancy_smoothing", "Denoising", "NOISE_SCALES", "GIVE_UP", "FIT_AT_MOST"]
+           "discrepancy_smoothing", "Denoising", "NOISE_SCALES", "GIVE_UP"]
 
 OFFSETS = [k for k in itertools.product((-1, 0, 1), repeat=3)]  # the 27 offsets of c(k), (0, 0, 0) among them
 SIGMAS = tuple(round(0.4 + 0.1 * i, 1) for i in range(12))  # 0.4 .. 1.5 voxels: the candidates besides 0
@@ -87,7 +78,6 @@ GUIDE_SIGMA = 0.8  # voxels: the Gaussian that smooths the bilateral's guide (it
 PROBE_STEP = 0.1  # the Monte Carlo divergence's finite difference, in the probe's (the noise's) standard deviations
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 4.0)  # the noise estimate's factors discrepancy_smoothing tries in turn
 GIVE_UP = 1.0  # data noise variances of fit a smoothing may give up over the unsmoothed volume's misfit
-FIT_AT_MOST = 1.08  # on noisy views, a volume that misfits them by more than this x their noise variance is not smoothed
 MEDIAN_VALUES_AT_MOST = 1 << 21  # a median of more values takes every n-th (a 256^3 grid: 8x fewer, 3x faster)
 
 
@@ -238,8 +228,7 @@ class Denoising:
     ``misfit`` of each choice it tried (its projections' mean-square misfit over the data's noise
     variance, in the order of ``NOISE_SCALES``), the unsmoothed volume's own misfit in the same unit
     (``own_misfit``) and the first choice refused for giving up more fit than the noise (``refused``, its
-    label; empty when none was) and whether it was refused because the volume itself misfits the data by
-    more than ``FIT_AT_MOST`` times their noise (``underfit``)."""
+    label; empty when none was)."""
 
     filter: str
     sigma: float = 0.0
@@ -253,7 +242,6 @@ class Denoising:
     misfit: list = field(default_factory=list)
     own_misfit: Optional[float] = None
     refused: str = ""
-    underfit: bool = False
 
     def to_json(self) -> dict:
         return {"filter": self.filter, "sigma_voxels": self.sigma, "range_noise_stds": self.range_stds,
@@ -261,7 +249,7 @@ class Denoising:
                 "region_voxels": self.region, "sure": dict(self.sure), "noise_scale": self.noise_scale,
                 "misfit": [{"noise_scale": m, "choice": label, "misfit_over_noise": round(r, 4)} for m, label, r in self.misfit],
                 "own_misfit_over_noise": None if self.own_misfit is None else round(self.own_misfit, 4),
-                "refused": self.refused, "underfit": self.underfit, "seconds": round(self.seconds, 2)}
+                "refused": self.refused, "seconds": round(self.seconds, 2)}
 
     @property
     def label(self) -> str:
@@ -318,7 +306,7 @@ def sure_smoothing(volume: torch.Tensor, mask: Optional[torch.Tensor] = None, si
 def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor], float], data_noise: float,
                           mask: Optional[torch.Tensor] = None, scales: Sequence[float] = NOISE_SCALES,
                           sigmas: Sequence[float] = SIGMAS, bilaterals: Sequence[tuple[float, float]] = BILATERALS,
-                          seed: int = 0, give_up: float = GIVE_UP, fit_at_most: Optional[float] = None) -> tuple[torch.Tensor, Denoising]:
+                          seed: int = 0, give_up: float = GIVE_UP) -> tuple[torch.Tensor, Denoising]:
     """:func:`sure_smoothing` of ``volume`` [nx, ny, nz] with its noise estimate raised, by the
     factors ``scales`` in turn, while the choice still fits the data closer than their noise
     (module docstring): ``misfit(smoothed)`` is the mean square of the data minus the projections
@@ -327,17 +315,15 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
     tried in ``Denoising.misfit``; a choice of none ends it at once (nothing to raise: the volume
     shows no noise). A choice whose misfit exceeds the unsmoothed volume's own by more than
     ``give_up`` x ``data_noise`` is refused and ends it: the last choice accepted before it is
-    returned, or the volume as it is (``filter`` none, ``refused`` naming the choice). So is the volume
-    whose own misfit exceeds ``fit_at_most`` x ``data_noise`` where that is given (``underfit``: it holds
-    no noise of the data to take out; None: no such test). ``data_noise`` <= 0 (nothing known) returns
-    the first choice."""
+    returned, or the volume as it is (``filter`` none, ``refused`` naming the choice). ``data_noise``
+    <= 0 (nothing known) returns the first choice."""
     import time
 
     t0 = time.perf_counter()
     volume = volume.float()
     mask = (volume != 0) if mask is None else mask.bool()
     c = noise_autocovariance(volume, mask)  # estimated once, raised for each scale
-    tried, own, refused, underfit = [], None, "", False
+    tried, own, refused = [], None, ""
     accepted = None  # (smoothed, choice) of the last choice within the noise
     for scale in scales:
         smoothed, choice = sure_smoothing(volume, mask, sigmas, bilaterals, seed, noise_scale=scale, autocovariance=c)
@@ -346,9 +332,6 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
             break
         if own is None:
             own = float(misfit(volume))
-            if fit_at_most is not None and own > fit_at_most * float(data_noise):
-                refused, underfit = choice.label, True
-                break
         smoothed_misfit = float(misfit(smoothed))
         ratio = smoothed_misfit / float(data_noise)
         tried.append((float(scale), choice.label, ratio))
@@ -358,12 +341,12 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
         accepted = (smoothed, choice)
         if ratio >= 1.0:
             break
-    if accepted is None:  # the first choice gave up more than the noise, or the volume misfits by more: it stays as it is
+    if accepted is None:  # the first choice gave up more than the noise: the volume stays as it is
         none = Denoising("none", sure=choice.sure, noise_std=choice.noise_std, neighbour_correlation=choice.neighbour_correlation,
                          region=choice.region, noise_scale=choice.noise_scale)
         accepted = (volume, none)
     smoothed, choice = accepted
-    choice.misfit, choice.refused, choice.underfit = tried, refused, underfit
+    choice.misfit, choice.refused = tried, refused
     choice.own_misfit = None if own is None else own / float(data_noise)
     choice.seconds = time.perf_counter() - t0
     return smoothed, choice

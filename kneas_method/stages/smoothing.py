@@ -6,9 +6,8 @@ filter) that minimises Stein's unbiased estimate of the volume's squared error u
 correlated noise, raising the noise estimate while the smoothed volume's projections still fit the
 training views closer than their noise (the discrepancy principle), and refusing a filter whose
 projections fit the views worse than the unsmoothed volume's by more than their noise (it would take
-out texture the views show), and, on noisy views, leaving alone a volume that does not fit them to
-their noise (there is no noise of theirs in it to take out). Where no filter lowers the estimate, or the one that
-does is refused (a clean scan), the volume is left as it is and the model is not touched.
+out texture the views show). Where no filter lowers the estimate, or the one that does is refused
+(a clean scan), the volume is left as it is and the model is not touched.
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ import torch
 
 from ..config import at_least
 from .base import RunState, Stage, StageConfig
-from .denoise import FIT_AT_MOST
 from .volume_fit import fit_in_region
 
 SmoothingRule = Literal["sure", "sure-gaussian"]
@@ -58,14 +56,11 @@ def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projec
     """``volume`` [nx, ny, nz] smoothed as the smoothing stage smooths a model's volume: the filter SURE
     prefers (``rule``), its noise estimate raised while the smoothed volume's projections still fit
     ``projections`` [N, nV, nU] closer than their noise (``denoise.discrepancy_smoothing``; the noise
-    from the volume's own residual, ``band_correction.noise_variance``); on noisy views (values below 0
-    in air, ``datamanagers.ct.noise_air_threshold``) a volume that misfits them by more than
-    ``denoise.FIT_AT_MOST`` x that noise is left as it is. ``projector`` projects a volume
+    from the volume's own residual, ``band_correction.noise_variance``). ``projector`` projects a volume
     at the views' angles (``classical.projector.Projector``). ``mask`` [nx, ny, nz] (bool): where the
     volume's noise is estimated; None: its non-zero voxels (a model's volume is exactly 0 outside its
     visual hull; a classical one, whose zeros are clamped noise, passes the whole grid). Returns
     ``(smoothed, denoise.Denoising)``; ``benchmarks/classical.py --smooth`` smooths classical volumes so."""
-    from ..datamanagers.ct import noise_air_threshold
     from .band_correction import noise_variance
     from .denoise import BILATERALS, discrepancy_smoothing
 
@@ -74,9 +69,7 @@ def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projec
         return float((r * r).mean())
 
     data_noise = noise_variance(projections - projector.forward(volume))
-    noisy = noise_air_threshold(projections.detach().cpu().numpy())[1] > 0  # noise-free views have no value below 0
-    return discrepancy_smoothing(volume, misfit, data_noise, mask=mask, bilaterals=BILATERALS if rule == "sure" else (),
-                                 fit_at_most=FIT_AT_MOST if noisy else None)
+    return discrepancy_smoothing(volume, misfit, data_noise, mask=mask, bilaterals=BILATERALS if rule == "sure" else ())
 
 
 def filter_words(choice) -> str:
@@ -94,11 +87,7 @@ def describe_choice(choice) -> list[str]:
     if raised:
         lines.append("; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise" for m, label, r in raised)
                      + ": closer than the noise, so the volume holds more noise than estimated, and the estimate was raised")
-    if choice.underfit:
-        lines.append(f"the volume's projections misfit the views by {choice.own_misfit:.3g} x their noise (above "
-                     f"{FIT_AT_MOST:g}): it has not fitted their noise, so what it lacks is signal, and {choice.refused} "
-                     "(SURE's choice) would take out more; refused")
-    elif choice.refused:
+    if choice.refused:
         r = choice.misfit[-1][2]
         lines.append(f"{choice.refused} would fit the projections to {r:.3g} x their noise against the unsmoothed volume's "
                      f"{choice.own_misfit:.3g}: it gives up more fit than the noise holds, so it would take out what the views "
