@@ -59,3 +59,5 @@ def test_the_starts_fit_is_computed_once_and_none_without_a_start(tmp_path):
     state.start = (np.asarray(truth), "asd-pocs")  # a later call reads the record, not the volume
     assert start_fit(state) is fit and not fit["at_noise"]
     assert start_fit(dataclasses.replace(state, records={}, start=None)) is None
+    views = state.views()  # the training views as a tensor, made once for every stage that projects
+    assert views is state.views() and views.dtype == torch.float32 and np.array_equal(views.numpy(), exact)

@@ -118,6 +118,7 @@ class RunState:
     moved_region: Any = None
     projectors: dict = field(default_factory=dict)
     scored_volume: Any = None
+    train_views: Any = None
 
     def model_volume(self):
         """The model's volume ``[nx, ny, nz]`` (a tensor on the device): the one the last stage left,
@@ -143,6 +144,16 @@ class RunState:
         if 1 not in self.projectors:
             self.projectors[1] = Projector(self.scene.geometry, self.scene.train.angles, device=self.device)
         return self.projectors[1]
+
+    def views(self):
+        """The training views' line integrals ``[N, nV, nU]`` as a float32 tensor on the device (made once,
+        shared by the stages that compare a volume's projections with them)."""
+        import numpy as np
+        import torch
+
+        if self.train_views is None:
+            self.train_views = torch.as_tensor(np.asarray(self.scene.train.projections, dtype=np.float32), device=self.device)
+        return self.train_views
 
     def score(self, after: str, volume=None) -> Optional[dict]:
         """Score the volume ``after`` a stage left (``volume``, numpy or tensor; by default the model's as

@@ -80,9 +80,8 @@ def start_fit(state: RunState) -> Optional[dict]:
         correction = state.config.stages.correction
         factor = NOISE_FACTOR if correction is None else float(correction.noise_factor)
         volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
-        projections = torch.as_tensor(np.asarray(state.scene.train.projections, dtype=np.float32), device=state.device)
         with torch.no_grad():
-            level, mean_square, sigma2 = at_noise(projections - state.projector().forward(volume), factor)
+            level, mean_square, sigma2 = at_noise(state.views() - state.projector().forward(volume), factor)
         record["fit"] = {"mean_square": float(mean_square), "noise_variance": float(sigma2), "at_noise": bool(level)}
         state.say(f"classical start: the {state.start[1].upper()} volume's residual {mean_square:.3g} (mean square) is "
                   + (f"at the data's noise ({sigma2:.3g}): the views hold nothing more it could fit" if level

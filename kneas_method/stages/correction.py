@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
-import numpy as np
 import torch
 
 from ..config import at_least
@@ -96,7 +95,7 @@ class Correction(Stage):
                   f"say, in a band around the edges (at most {c.iterations} CGLS iterations each), written into the model "
                   "(--skip-stages correction skips it)")
         started = time.perf_counter()
-        projections = torch.as_tensor(np.asarray(scene.train.projections, dtype=np.float32), device=state.device)
+        projections = state.views()
         passes: list[dict] = []
         discretisation = None
         seconds: list[float] = []  # what each pass took, and whether it estimated the discretisation error afresh

@@ -115,8 +115,7 @@ class Smoothing(Stage):
             return
         started = time.perf_counter()
         volume = state.model_volume()
-        projections = torch.as_tensor(scene.train.projections, dtype=torch.float32, device=volume.device)
-        smoothed, choice = smooth_against_views(volume, projections, state.projector(), c.rule)
+        smoothed, choice = smooth_against_views(volume, state.views(), state.projector(), c.rule)
         for line in describe_choice(choice):
             state.say("smoothing: " + line)
         if choice.filter != "none":
