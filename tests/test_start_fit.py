@@ -61,3 +61,28 @@ def test_the_starts_fit_is_computed_once_and_none_without_a_start(tmp_path):
     assert start_fit(dataclasses.replace(state, records={}, start=None)) is None
     views = state.views()  # the training views as a tensor, made once for every stage that projects
     assert views is state.views() and views.dtype == torch.float32 and np.array_equal(views.numpy(), exact)
+
+
+def test_the_anchor_holds_the_start_harder_where_it_fits_the_views_to_their_noise(tmp_path):
+    from kneas_method.engine.trainer import Trainer
+    from kneas_method.stages.anchor import AnchorConfig, anchor_weight, build_anchor
+
+    scene, truth, exact, noisy = _views()
+    config = AnchorConfig()
+    assert config.weight_at_noise > config.weight
+    assert anchor_weight(config, _state(tmp_path / "far", scene, truth * 0.5, exact)) == (config.weight, "default")
+    state = _state(tmp_path / "noisy", scene, truth, noisy)
+    assert anchor_weight(config, state) == (config.weight_at_noise, "at-noise")
+    assert anchor_weight(dataclasses.replace(config, weight_at_noise=None), state) == (config.weight, "default")
+
+    # the stage builds its loss term with that weight and records it
+    trainer = Trainer(state.config, scene, tmp_path / "run", epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
+    state = dataclasses.replace(state, trainer=trainer, records=trainer.records)
+    config.setup().run(state)
+    assert state.records["anchor"] == {"weight": config.weight_at_noise, "at_noise": True}
+    expected = build_anchor(trainer, truth, config.weight_at_noise, config.points, occupancy_weight=config.occupancy)
+    draw = trainer.generator.get_state()
+    with torch.no_grad():
+        held = float(state.loss_terms["anchor"]())
+        trainer.generator.set_state(draw)
+        assert held == float(expected.loss(trainer.model, trainer.generator)) and held > 0

@@ -427,12 +427,14 @@ def test_the_stages_settings_check_themselves():
     base = registry.load("methods", "k-neas").config
     cpu = presets.resolve(dataclasses.replace(base, preset="cpu"))
     st = cpu.stages
-    assert (st.classical_start.algorithm, st.warm_start.steps, st.anchor.weight, st.anchor.occupancy, st.anchor.edge_contrast) == \
-        ("asd-pocs", 300, 0.01, 0.03, 0.0)
+    assert (st.classical_start.algorithm, st.warm_start.steps, st.anchor.weight, st.anchor.weight_at_noise, st.anchor.occupancy,
+            st.anchor.edge_contrast) == ("asd-pocs", 300, 0.01, 0.05, 0.03, 0.0)
     assert presets.resolve(cpu) == cpu  # a saved run's config resolves to itself
     lines = " ".join(presets.describe(cpu))
-    assert "anchor: the classical start kept as a prior during training, weight 0.01, its labels away from its edges at weight 0.03" in lines
+    assert ("anchor: the classical start kept as a prior during training, weight 0.01 (0.05 where the start fits the views to "
+            "their noise), its labels away from its edges at weight 0.03") in lines
     for part, setting, value, words in (("anchor", "edge_contrast", -0.1, "--stages.anchor.edge-contrast must be a number >= 0"),
+                                        ("anchor", "weight_at_noise", -0.05, "--stages.anchor.weight-at-noise must be a number >= 0"),
                                         ("anchor", "occupancy", float("nan"), "--stages.anchor.occupancy"),
                                         ("warm_start", "steps", 1.5, "stages.warm_start.steps must be an integer"),
                                         ("warm_start", "points", 0, "--stages.warm-start.points must be a whole number >= 1")):

@@ -4,6 +4,8 @@ still evaluate, export and resume as they were trained.
 Until 2026-12-02 (f57f826) a neural run's stages outside the training loop were flat ``trainer``
 settings (``warm_start``, ``warm_start_anchor``, ``correction_passes``, ``denoise``, ``time_budget``,
 ...) with ``bounds_volume`` at the top; :func:`upgrade` maps them onto ``procedure`` and ``stages``.
+Until 2026-12-07 the anchor had one weight on every scan: an older ``stages.anchor`` gets
+``weight_at_noise`` None (that weight where the start fits the views to their noise too).
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ def upgrade(data: dict, attenuation_has_width: Callable[[str, dict], bool]) -> d
     model = data.get("model")
     if isinstance(model, dict) and model.get("reference") is False:
         data["model"] = model = {k: v for k, v in model.items() if k != "reference"}
+    stages = data.get("stages")
+    if isinstance(stages, dict) and isinstance(stages.get("anchor"), dict) and "weight_at_noise" not in stages["anchor"]:
+        data["stages"] = dict(stages, anchor=dict(stages["anchor"], weight_at_noise=None))
     trainer = data.get("trainer")
     if not isinstance(trainer, dict) or not any(k in trainer for k in STAGE_KEYS) and "bounds_volume" not in data:
         return data
@@ -61,7 +66,7 @@ def upgrade(data: dict, attenuation_has_width: Callable[[str, dict], bool]) -> d
                              "occupancy": old.get("warm_start_occupancy", 0.01)}
                             if start and warm not in (None, "none") and old.get("warm_start_steps") else None)
     anchor = float(old.get("warm_start_anchor") or 0.0)
-    stages["anchor"] = ({"weight": anchor, "points": old.get("anchor_points", 4096), "occupancy": old.get("anchor_occupancy") or 0.0,
+    stages["anchor"] = ({"weight": anchor, "weight_at_noise": None, "points": old.get("anchor_points", 4096), "occupancy": old.get("anchor_occupancy") or 0.0,
                          "edge_contrast": old.get("anchor_edge_contrast") or 0.0, "region": old.get("anchor_region", "box")}
                         if start and anchor > 0 else None)
     passes = int(old.get("correction_passes") or 0)
