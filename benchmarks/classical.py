@@ -134,6 +134,19 @@ def smoothed_rows(box, scene, views: tuple, volume, best: dict, device) -> dict:
     return out
 
 
+def cpu_rule_at_noise(volume, views: tuple, device) -> bool:
+    """Whether a classical ``volume`` (the fitting box's grid) fits the training ``views`` (``training_views``)
+    to their noise, the test by which the refine-classical procedure picks its at-noise K rule for k-neas's
+    start (``classical_start.start_fit``)."""
+    import numpy as np
+    from kneas_method.stages.band_correction import NOISE_FACTOR, at_noise
+
+    projections, projector = views
+    with torch.no_grad():
+        v = torch.as_tensor(np.asarray(volume), dtype=torch.float32, device=device)
+        return bool(at_noise(projections - projector.forward(v), NOISE_FACTOR)[0])
+
+
 def training_views(box, device) -> tuple:
     """``(projections [N, nV, nU] tensor, Projector)`` of the fitting box's training views."""
     import numpy as np
@@ -153,6 +166,7 @@ def main(argv=None) -> int:
     from kneas_method.console import say
     from kneas_method.data.truncation import fitting_scene
     from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
+    from kneas_method.engine.bounds_stage import histogram_smoothing
     from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.stages.procedures import REFINE_CLASSICAL
 
@@ -166,7 +180,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dice", action="store_true", help="also per-material Dice / Chamfer (GMM thresholds, as kneas-eval: K = 1..4 "
                     "by BIC), and under dice_cpu_rule the same with the cpu preset's K rule (the refine-classical procedure: the histogram's "
-                    "peaks, bic-valleys with its GMM starts where there are fewer than two)")
+                    "peaks, bic-valleys with its GMM starts where there are fewer than two; where the volume fits the training views "
+                    "to their noise, its at-noise rule: BIC on the volume after the bounds' edge-preserving filter)")
     ap.add_argument("--shells", action="store_true", help="with --dice: also score the thresholded volume with its partial-volume "
                     "shells relabelled first, as kneas-eval does a k-neas model's (kneas_method.evaluation.partial_volume): "
                     "the same keys ending in _shells")
@@ -207,7 +222,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"error: {' and '.join(scoring)} score volumes against the ground truth, and scene {scene.name!r} has "
                              f"none; leave {' and '.join(scoring)} out for it")
         init = start_volume(args.init, scene, box)
-        views = training_views(box, args.device) if args.smooth else None
+        views = training_views(box, args.device) if (args.smooth or args.dice) else None
         for name, kwargs in runs:
             residuals = []
             load0 = os.getloadavg()[0]
@@ -253,10 +268,14 @@ def main(argv=None) -> int:
                     row["dice_mean" + tail] = mm["dice_mean"]
                     row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
                     row["chamfer_mm" + tail] = per_material_chamfer(mm)
-                    mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=cpu["bounds_k_rule"],
+                    at_noise = cpu_rule_at_noise(rec.volume, views, args.device)
+                    rule = cpu["bounds_at_noise_k_rule"] if at_noise else cpu["bounds_k_rule"]
+                    fit_values = histogram_smoothing(vol) if at_noise else None
+                    mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
                                                  min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"],
-                                                 surfaces=scene.membership is not None, shells=shells)
-                    row["cpu_rule"] = {"k_rule": cpu["bounds_k_rule"], "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"]}
+                                                 surfaces=scene.membership is not None, shells=shells, fit_values=fit_values,
+                                                 fit_values_are="the volume after the bounds' edge-preserving filter" if at_noise else "")
+                    row["cpu_rule"] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
                     row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
                     row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
                     row["chamfer_mm_mean_cpu_rule" + tail] = mv.get("chamfer_mm_mean")
@@ -284,7 +303,8 @@ def main(argv=None) -> int:
                     "load_avg_1m: machine load before/after the run (shared machine)"
                     + ("; dice / chamfer_mm (per material, mm) / *_mean: the volume thresholded at GMM bounds fitted on "
                        "itself with the paper's K rule (K = 1..4 by BIC), air at 0 a matching candidate; *_cpu_rule: the "
-                       "same with the cpu preset's K rule (cpu_rule: the rule, the rule that decided K, K); a material no "
+                       "same with the cpu preset's K rule (cpu_rule: the rule, the rule that decided K, K, and at_noise: the volume "
+                       "fits the views to their noise, so the procedure's at-noise rule on the volume after the bounds' filter); a material no "
                        "class was matched to has Dice 0 and no Chamfer; keys ending in _shells: the same with the partial-volume shells "
                        "relabelled first (--shells)" if args.dice else "")
                     + ("; trace: psnr3d / ssim3d after every iteration (the seconds include scoring them); best: its "

@@ -182,6 +182,13 @@ class TrainConfig(RunConfig):
             its peak (``model.first_label_threshold``); bic-valleys where the histogram has
             fewer than two peaks); None = the procedure's: refine-classical peaks (bic-valleys with a
             ``bounds_method`` other than ``gmm``), paper bic.
+        bounds_at_noise_k_rule: the K rule instead of ``bounds_k_rule`` where the classical start
+            already fits the training views to their noise (a noisy scan; ``classical_start.start_fit``),
+            the mixtures fitted to the start after the edge-preserving filter of the peaks rule's
+            fallback: noise smears a scan's histogram so that only its two largest tissues keep a peak
+            or a valley, while BIC counts the components the filtered values support. The same rule as
+            ``bounds_k_rule`` (``--bounds-at-noise-k-rule peaks``): that rule everywhere. None = the
+            procedure's: refine-classical bic (the paper's none: ``bounds_k_rule`` everywhere).
         bounds_min_std: the GMM components' smallest standard deviation, as a fraction of
             the 99.5th-percentile attenuation (0 = sklearn's default regulariser; None = the
             procedure's: 0). Keeps a TV-flattened material from taking a spike component.
@@ -210,6 +217,7 @@ class TrainConfig(RunConfig):
     bounds_method: BoundsMethod = "gmm"
     bounds_max_materials: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
     bounds_k_rule: Optional[BoundsKRule] = None
+    bounds_at_noise_k_rule: Optional[BoundsKRule] = None
     bounds_min_std: Optional[float] = None
     bounds_gmm_restarts: Optional[int] = field(default=None, metadata=at_least(1, whole=True))
     bounds_upper_percentile: Optional[float] = field(default=None, metadata=at_least(0, strict=True, at_most=100))

@@ -262,6 +262,10 @@ def resolve(config: RunConfig) -> RunConfig:
     return config
 
 
+RULE_WORDS = {"bic": "K by BIC", "bic-valleys": "K by the lowest BIC with every boundary a density valley",
+              "peaks": "one material per histogram peak (a mixture where there are fewer than two)"}
+
+
 def describe(config: TrainConfig) -> list[str]:
     """The lines a neural run prints and records about how it is fitted: the procedure, each stage it
     runs in order (the core included), and where its settings leave the paper's."""
@@ -276,12 +280,14 @@ def describe(config: TrainConfig) -> list[str]:
     if field_has_surfaces(config.model) and automatic_bounds(config):
         source = (f"the {config.stages.classical_start.algorithm.upper()} start" if config.stages.classical_start is not None
                   else f"a NeAS-1M prior ({config.trainer.prior_epochs} epochs)")
-        rule = {"bic": "K by BIC", "bic-valleys": "K by the lowest BIC with every boundary a density valley",
-                "peaks": "one material per histogram peak (a mixture where there are fewer than two)"}[config.bounds_k_rule]
+        rule = RULE_WORDS[config.bounds_k_rule]
         extra = (f", the best of {config.bounds_gmm_restarts} GMM starts" if config.bounds_gmm_restarts != 1 else "") + \
                 (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")
         top = f"the top bound {config.bounds_upper_factor:g} x the {config.bounds_upper_percentile:g}th percentile" + \
               (f" or the {config.bounds_cover_percentile:g}th, whichever is higher" if config.bounds_cover_percentile else "")
+        noisy = config.bounds_at_noise_k_rule
+        if noisy is not None and noisy != config.bounds_k_rule and config.stages.classical_start is not None:
+            top += f"; {RULE_WORDS[noisy]} on the start after an edge-preserving filter where it fits the views to their noise"
         steps.append(f"bounds: {rule}, K = 1..{config.bounds_max_materials}{extra}, on the voxel values of {source}; {top}")
     steps += [cfg.describe() for cfg in stage_configs(config) if type(cfg).phase == "before-training"]
     steps.append(f"training: {config.trainer.epochs} epochs")

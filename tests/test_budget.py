@@ -47,7 +47,7 @@ def test_training_is_cut_to_whole_epochs_that_leave_the_passes_their_time():
     assert training_steps(-50.0, 1120, 4000, 0.06, 50, passes) == 1150
 
 
-def budget_state(tmp_path, start, projections, smoothed):
+def budget_state(tmp_path, start, projections, smoothed, at_noise_rule=None):
     """A tiny k-neas run's state before training, with ``start`` [nx, ny, nz] as its classical start, the
     scene's training ``projections`` replaced, and bounds from the peaks rule's fallback or not."""
     import time
@@ -68,7 +68,7 @@ def budget_state(tmp_path, start, projections, smoothed):
     cfg = dataclasses.replace(cfg, stages=dataclasses.replace(cfg.stages, correction=CorrectionConfig(), smoothing=SmoothingConfig(),
                                                               materials_refit=MaterialsRefitConfig()))
     trainer = Trainer(cfg, scene, tmp_path, epochs=4, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))
-    bounds = BoundsResult([0.1, 0.1], [0.25, 0.75], 2, "test", 0.0, {"smoothed": smoothed, "fit_time_s": 7.0})
+    bounds = BoundsResult([0.1, 0.1], [0.25, 0.75], 2, "test", 0.0, {"smoothed": smoothed, "fit_time_s": 7.0, "at_noise_rule": at_noise_rule})
     return RunState(config=cfg, scene=scene, run_dir=tmp_path, device="cpu", started=time.perf_counter(), loss_scale=1.0,
                     say=print, records=trainer.records, trainer=trainer, bounds=bounds, start=(np.asarray(start), "asd-pocs"))
 
@@ -93,6 +93,8 @@ def test_a_start_at_the_datas_noise_leaves_the_later_fits_their_time_not_the_pas
                         "seconds": SMOOTHING_CHOICE_S + 7.0}
     peaks = after_training(budget_state(tmp_path / "peaks", truth, noisy, False))  # bounds from peaks: no refit follows
     assert peaks == {"passes": False, "fit_steps": stages.smoothing.steps, "seconds": SMOOTHING_CHOICE_S}
+    ruled = after_training(budget_state(tmp_path / "ruled", truth, noisy, True, "bic"))  # the at-noise rule's bounds: no refit either
+    assert ruled == peaks
 
 
 def test_a_shortened_trainer_moves_its_learning_rate_step_and_its_config_with_it(tmp_path):

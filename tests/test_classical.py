@@ -408,6 +408,10 @@ def test_volume_material_metrics_of_the_exact_label_volume_are_perfect():
     assert peaks["K"] == 3 and peaks["gmm"]["k_rule_used"] == "peaks" and peaks["dice_mean"] == pytest.approx(1.0)
     noisy = exact + np.random.default_rng(0).normal(0, 0.08, exact.shape).astype(np.float32)
     assert volume_material_metrics(noisy, scene, surfaces=False)["dice_mean"] < 0.99
+    # bounds fitted on other values (the at-noise rule's filtered volume), the volume itself thresholded at them
+    beside = volume_material_metrics(noisy, scene, surfaces=False, fit_values=exact, fit_values_are="the exact volume")
+    assert beside["boundaries"] == pytest.approx(m["boundaries"]) and beside["gmm"]["fitted_on"] == "the exact volume"
+    assert beside["dice_mean"] < 0.99 and m["gmm"]["fitted_on"] == "the volume"
 
 
 def test_trace_scores_every_count_and_keeps_the_best(tmp_path, capsys):

@@ -45,7 +45,7 @@ def materials_stage(trainer, scene, config, bounds, run_dir, steps=80):
     return state.config, state.bounds
 
 
-def trained(scene_path, tmp_path, K, smoothed=SMOOTHED):
+def trained(scene_path, tmp_path, K, smoothed=SMOOTHED, at_noise_rule=None):
     """A finished tiny k-neas run with K materials over [0, 1] whose bounds came (or not) from the
     fallback: (config, scene, trainer, bounds, run_dir)."""
     from kneas_method.data.scenes import resolve_scene
@@ -57,7 +57,7 @@ def trained(scene_path, tmp_path, K, smoothed=SMOOTHED):
     save_run_config(run_dir, config)
     edges = np.linspace(0.0, 1.0, K + 1)
     bounds = BoundsResult(list(np.diff(edges)), list(edges[:-1]), K, "gmm (gmm) on the ASD-POCS", 0.0,
-                          {"volume": "asd-pocs", "smoothed": smoothed})
+                          {"volume": "asd-pocs", "smoothed": smoothed, "at_noise_rule": at_noise_rule})
     (run_dir / "bounds.json").write_text(json.dumps(bounds.to_json()))
     trainer = Trainer(config, scene, run_dir, epochs=1, device="cpu", bounds=(bounds.alphas, bounds.betas))
     trainer.step, trainer.complete = trainer.total_steps, True
@@ -110,6 +110,10 @@ def test_as_many_materials_keep_the_model_and_clean_starts_skip_the_stage(scene_
     assert json.loads((run_dir / "bounds.json").read_text())["K"] == 4
     # bounds from the histogram's peaks (a clean start): nothing is computed
     config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1, smoothed=None)
+    assert materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
+    assert "materials-refit" not in trainer.records and trainer.model.num_materials == 1
+    # bounds from the at-noise rule's mixtures on the filtered start: they counted its materials already
+    config, scene, trainer, bounds, run_dir = trained(scene_path, tmp_path, K=1, at_noise_rule="bic")
     assert materials_stage(trainer, scene, config, bounds, run_dir) == (config, bounds)
     assert "materials-refit" not in trainer.records and trainer.model.num_materials == 1
     assert calls == [1]

@@ -181,7 +181,7 @@ def test_cpu_preset_picks_k_by_histogram_peaks_unless_told_otherwise():
     note = next(n for n in presets.describe(cpu) if "bounds:" in n)
     assert "one material per histogram peak" in note and "K = 1..8" in note and "the best of 3 GMM starts" in note
     assert note.endswith("on the voxel values of the ASD-POCS start; the top bound 1.15 x the 99.5th percentile or the 99.99th, "
-                         "whichever is higher")
+                         "whichever is higher; K by BIC on the start after an edge-preserving filter where it fits the views to their noise")
     valleys = presets.resolve(dataclasses.replace(c, bounds_k_rule="bic-valleys"))
     note = next(n for n in presets.describe(valleys) if "bounds:" in n)
     assert "K by the lowest BIC with every boundary a density valley, K = 1..8" in note
@@ -275,6 +275,57 @@ def test_peaks_k_rule_is_a_choice_the_run_states(tmp_path):
     assert result.source == "gmm (gmm) on the ASD-POCS"
     boundaries = np.array(result.details["gmm"]["boundaries"])
     assert np.unique(np.searchsorted(boundaries, levels)).size == 3  # each level in a material of its own
+
+
+def four_levels_in_noise(noise=0.05, seed=0, n=40):
+    """A body at 0.2 holding spheres at 0.3, 0.6 and 0.9, with correlated noise of std ``noise``: the
+    levels ``[4]`` and the volume ``[n, n, n]`` (a noisy start whose histogram keeps fewer peaks than levels)."""
+    import numpy as np
+    from scipy import ndimage
+
+    g = (np.arange(n) - (n - 1) / 2) / (n / 2)
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    v = np.where(np.sqrt(x ** 2 + y ** 2 + z ** 2) < 0.9, 0.2, 0.0)
+    v = np.where(np.sqrt((x - 0.3) ** 2 + y ** 2 + z ** 2) < 0.45, 0.6, v)
+    v = np.where(np.sqrt((x + 0.45) ** 2 + (y - 0.3) ** 2 + z ** 2) < 0.25, 0.3, v)
+    v = np.where(np.sqrt((x + 0.45) ** 2 + (y + 0.3) ** 2 + z ** 2) < 0.25, 0.9, v)
+    w = ndimage.gaussian_filter(np.random.default_rng(seed).normal(0, 1, v.shape), 0.7)
+    return np.array([0.2, 0.3, 0.6, 0.9]), np.clip(v + w * noise / w.std(), 0, None).astype(np.float32)
+
+
+def test_a_start_at_the_views_noise_gets_the_at_noise_k_rule(tmp_path):
+    """refine-classical's ``bounds_at_noise_k_rule`` (BIC on the start after the edge-preserving filter):
+    on a noisy start the peaks rule leaves two of four levels in one material, the at-noise rule gives
+    each level a material of its own, and the bounds record which rule decided; the paper's procedure
+    has no such rule, and ``--bounds-at-noise-k-rule peaks`` keeps the peaks everywhere."""
+    import numpy as np
+
+    from conftest import sphere_scene
+    from kneas_method.engine.bounds_stage import estimate_bounds
+
+    base = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
+    cfg = presets.resolve(base)
+    assert cfg.bounds_at_noise_k_rule == "bic" and cfg.bounds_k_rule == "peaks"
+    assert presets.resolve(dataclasses.replace(base, procedure="paper")).bounds_at_noise_k_rule is None
+    assert "where it fits the views to their noise" in next(n for n in presets.describe(cfg) if "bounds:" in n)
+    levels, noisy = four_levels_in_noise()
+
+    def materials(result):  # how many materials the four levels fall in
+        return np.unique(np.searchsorted(np.array(result.details["gmm"]["boundaries"]), levels)).size
+
+    scene, start = sphere_scene(), (noisy, "asd-pocs")
+    peaks = estimate_bounds(cfg, scene, tmp_path / "a", torch.device("cpu"), start=start)
+    assert peaks.details["at_noise_rule"] is None and materials(peaks) == 3
+    at_noise = estimate_bounds(cfg, scene, tmp_path / "b", torch.device("cpu"), start=start, start_at_noise=True)
+    assert at_noise.details["at_noise_rule"] == "bic" and at_noise.details["k_chosen_by"] == "bic"
+    assert at_noise.details["smoothed"] == {"filter": "bilateral", "sigma_voxels": 3.0, "range_fraction": 0.1}
+    assert materials(at_noise) == 4 and at_noise.K >= 4
+    kept = presets.resolve(dataclasses.replace(base, bounds_at_noise_k_rule="peaks"))
+    same = estimate_bounds(kept, scene, tmp_path / "c", torch.device("cpu"), start=start, start_at_noise=True)
+    assert same.details["at_noise_rule"] is None and same.details["k_chosen_by"] == "peaks" and materials(same) == 3
+    given = estimate_bounds(presets.resolve(dataclasses.replace(base, num_materials=3)), scene, tmp_path / "d", torch.device("cpu"),
+                            start=start, start_at_noise=True)
+    assert given.K == 3 and given.details["at_noise_rule"] is None  # K given: no rule picks it
 
 
 @pytest.mark.parametrize("name", ["paper", "cpu", "tiny"])

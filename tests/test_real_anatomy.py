@@ -136,6 +136,19 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
     # (a filter may not give up more fit than the noise), so it is never worse than the run's own volume
     assert row["smoothed_best"]["filter"] != "none" and row["smoothed_best"]["psnr3d"] > row["best"]["psnr3d"]
     assert row["smoothed"]["psnr3d"] >= row["psnr3d"] - 1e-3  # both rounded as the table prints them
+    # --dice: the cpu preset's K rule as k-neas's start gets it, the at-noise rule where the volume fits the views to their noise
+    seen = []
+    for count in (1, 12):
+        out = tmp_path / f"dice-{count}.json"
+        assert classical.main(["--scenes", str(path), "--runs", f"sart:iterations={count},relaxation=1.0", "--dice", "--out", str(out)]) == 0
+        rule = json.loads(out.read_text())["rows"][0]["cpu_rule"]
+        volume = sart(loaded.train.projections, loaded.geometry, loaded.train.angles, iterations=count, relaxation=1.0)
+        at_noise = classical.cpu_rule_at_noise(volume, (projections, projector), "cpu")
+        assert rule["at_noise"] is at_noise and rule["k_rule"] == ("bic" if at_noise else "peaks")
+        seen.append(at_noise)
+    # both branches: on 8 views of a 32-pixel detector twelve sweeps fit part of the noise itself, whose
+    # estimate from the residual's high frequencies then falls below the residual's mean square
+    assert seen == [True, False]
 
 
 def test_the_classical_bar_refuses_to_smooth_a_scene_without_truth(tmp_path):

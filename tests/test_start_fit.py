@@ -25,14 +25,15 @@ def _views():
     return scene, truth, exact, noisy.astype(np.float32)
 
 
-def _state(tmp_path, scene, start, projections):
+def _state(tmp_path, scene, start, projections, **settings):
     import time
 
     from kneas_method import presets, registry
     from kneas_method.stages import RunState
 
     scene.train.projections = np.asarray(projections, dtype=np.float32)
-    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", preset="tiny", num_materials=2))
+    settings = {"preset": "tiny", "num_materials": 2, **settings}
+    cfg = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, method="k-neas", **settings))
     return RunState(config=cfg, scene=scene, run_dir=tmp_path, device="cpu", started=time.perf_counter(), loss_scale=1.0,
                     say=print, start=(np.asarray(start), "asd-pocs"))
 
@@ -86,3 +87,27 @@ def test_the_anchor_holds_the_start_harder_where_it_fits_the_views_to_their_nois
         held = float(state.loss_terms["anchor"]())
         trainer.generator.set_state(draw)
         assert held == float(expected.loss(trainer.model, trainer.generator)) and held > 0
+
+
+def test_the_bounds_are_told_whether_the_start_fits_the_views_to_their_noise(tmp_path, monkeypatch):
+    """The pipeline passes ``start_fit``'s verdict to the bounds (whose at-noise K rule then decides on
+    a noisy scan) and records the fit once, for the stages after it."""
+    from kneas_method.engine import neural_pipeline
+
+    told = []
+    real = neural_pipeline.estimate_bounds
+
+    def spy(*args, **kwargs):
+        told.append(kwargs["start_at_noise"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(neural_pipeline, "estimate_bounds", spy)
+    scene, truth, exact, noisy = _views()
+    results = {}
+    for name, start, views in (("far", truth * 0.5, exact), ("noisy", truth, noisy)):
+        state = _state(tmp_path / name, scene, start, views, preset="cpu", num_materials=None, bounds_max_materials=3)
+        (tmp_path / name).mkdir()
+        results[name] = neural_pipeline.NeuralPipeline(state.config, scene=scene, run_dir=tmp_path / name, device="cpu").bounds(state)
+        assert state.records["classical-start"]["fit"]["at_noise"] is (name == "noisy")
+    assert told == [False, True]
+    assert results["far"].details["at_noise_rule"] is None and results["noisy"].details["at_noise_rule"] == "bic"

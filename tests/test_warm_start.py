@@ -496,12 +496,12 @@ def test_peaks_bounds_set_where_material_one_labels_start_in_the_saved_run(small
 
     real = neural_pipeline.estimate_bounds
 
-    def two_plateaus(config, scene, run_dir, device, start=None, loss_scale=1.0):
+    def two_plateaus(config, scene, run_dir, device, start=None, loss_scale=1.0, **kwargs):
         v = np.asarray(start[0], dtype=np.float64)
         inside = v > 0.5 * np.percentile(v, 99)
         rng = np.random.default_rng(0)
         plateaus = np.where(v > np.percentile(v[inside], 70), 0.8, 0.3) + rng.normal(0, 1e-3, v.shape)
-        return real(config, scene, run_dir, device, start=(np.where(inside, plateaus, 0.0), start[1]), loss_scale=loss_scale)
+        return real(config, scene, run_dir, device, start=(np.where(inside, plateaus, 0.0), start[1]), loss_scale=loss_scale, **kwargs)
 
     monkeypatch.setattr(neural_pipeline, "estimate_bounds", two_plateaus)
     code, out, err = run(["k-neas", "--scene", str(small_scene), "--preset", "tiny", "--output-dir", str(tmp_path / "o"),

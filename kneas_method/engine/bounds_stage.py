@@ -220,10 +220,14 @@ def _line_integral_check(gmm, scene, what: str) -> float:
     return mu_needed
 
 
-def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple] = None, loss_scale: float = 1.0) -> BoundsResult:
+def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple] = None, loss_scale: float = 1.0,
+                    start_at_noise: bool = False) -> BoundsResult:
     """Bounds for a surface method (module docstring). ``start``: the classical start's ``(volume,
     algorithm)``, whose volume the automatic bounds are estimated on; None: a NeAS-1M prior's.
-    ``loss_scale``: the run's loss unit (the wide defaults are NAF-scale: in a scanner's scan, in its unit)."""
+    ``loss_scale``: the run's loss unit (the wide defaults are NAF-scale: in a scanner's scan, in its unit).
+    ``start_at_noise``: the start fits the training views to their noise (``classical_start.start_fit``);
+    then ``config.bounds_at_noise_k_rule``, where set and not ``bounds_k_rule`` itself, picks K on the start after
+    :func:`histogram_smoothing` (``details["at_noise_rule"]``)."""
     from ..bounds import load_bounds
 
     K = config.num_materials
@@ -254,7 +258,16 @@ def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple]
     else:
         volume, what = start[0], start[1].upper()
     t0 = time.perf_counter()
-    if config.bounds_k_rule == "peaks" and K is None:
+    noisy_rule = config.bounds_at_noise_k_rule
+    if start is None or not start_at_noise or K is not None or noisy_rule == config.bounds_k_rule:
+        noisy_rule = None  # the run's one rule decides
+    k_rule = noisy_rule or config.bounds_k_rule
+    if noisy_rule is not None:
+        say(f"bounds: the {what} volume fits the views to their noise, so its histogram's peaks are smeared: Gaussian mixtures "
+            f"(K = 1..{config.bounds_max_materials} by {'BIC' if noisy_rule == 'bic' else noisy_rule}, {config.bounds_gmm_restarts} start(s) "
+            f"each) fitted to it after an edge-preserving filter (bilateral, {FALLBACK_SIGMA:g} voxels, range {FALLBACK_RANGE:g} x its "
+            "99.5th percentile; --bounds-at-noise-k-rule peaks keeps the peaks rule)", markup=False)
+    elif config.bounds_k_rule == "peaks" and K is None:
         say(f"bounds: one material per peak of the {what} voxel values' histogram (Gaussian mixtures, K = 1..{config.bounds_max_materials}, "
             "if it has fewer than two)", markup=False)
     else:
@@ -262,20 +275,29 @@ def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple]
             f"{config.bounds_gmm_restarts} start(s) each) to the {what} voxel values", markup=False)
     smoothed = []
 
+    def fallback_values():
+        smoothed.append(histogram_smoothing(volume))
+        return smoothed[0]
+
     def fallback():  # the peaks rule found fewer than two peaks (a noisy or textured volume)
         say(f"bounds: the {what} voxel values' histogram has fewer than two peaks; the mixtures are fitted to the volume after "
             f"an edge-preserving filter (bilateral, {FALLBACK_SIGMA:g} voxels, range {FALLBACK_RANGE:g} x its 99.5th percentile)",
             markup=False)
-        smoothed.append(histogram_smoothing(volume))
-        return smoothed[0]
+        return fallback_values()
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # the mixtures' remarks: said below as "bounds warning:" lines, once
-        gmm = run_mixtures(config, K=K).fit(volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
+        if noisy_rule is not None:
+            values = fallback_values()
+            gmm = run_mixtures(config, K=K, k_rule=noisy_rule).fit(values, fallback=values, fallback_name=f"the {what} after a bilateral filter")
+        else:
+            gmm = run_mixtures(config, K=K).fit(volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
     fit = gmm.to_dict()
     fit["units"] = f"data units (1/m), the {what} attenuation at the voxel centres"
-    rule = "BIC" if config.bounds_k_rule == "bic" else "lowest BIC with every boundary a density valley"
-    if config.bounds_k_rule == "peaks":
+    rule = "BIC" if k_rule == "bic" else "lowest BIC with every boundary a density valley"
+    if noisy_rule is not None:
+        rule += " on the start after the filter, the start being at the views' noise"
+    elif k_rule == "peaks":
         peaks = f"histogram peaks at {', '.join(f'{v:.4g}' for v in gmm.peaks_) or 'none'}"
         rule = peaks + ("" if gmm.gmm_ is None else f"; fewer than two, so the {rule}" + (" after the filter" if smoothed else ""))
     chosen = f"K = {gmm.n_components_} " + ("(given)" if K is not None else f"({rule}" + ("" if gmm.gmm_ is None else ": " + ", ".join(
@@ -290,6 +312,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple]
         f"alphas ({', '.join(f'{v:.4g}' for v in gmm.alphas_)}) betas ({', '.join(f'{v:.4g}' for v in gmm.betas_)}) (data units)", markup=False)
     details = {"volume": "prior" if start is None else start[1], "k_chosen_by": "given" if K is not None else gmm.k_rule_used_,
                "smoothed": {"filter": "bilateral", "sigma_voxels": FALLBACK_SIGMA, "range_fraction": FALLBACK_RANGE} if smoothed else None,
+               "at_noise_rule": noisy_rule,
                "prior_run": None if prior is None else str(prior.folder), "prior_reused": False if prior is None else prior.reused,
                "warnings": list(gmm.warnings_), "mu_needed_lower_bound": mu_needed, "fit_time_s": time.perf_counter() - t0, "gmm": fit}
     if gmm.gmm_ is None:  # the peaks rule: material 1's labels start half way from air to its level

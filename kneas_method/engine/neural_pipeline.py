@@ -86,8 +86,15 @@ class NeuralPipeline:
             say(f"bounds: already estimated for this run ({path}; K = {result.K})")
         else:
             automatic = config.bounds is None and config.model.alphas is None and config.bounds_source == "auto"
+            at_noise = False
+            if (automatic and state.start is not None and config.num_materials is None
+                    and config.bounds_at_noise_k_rule not in (None, config.bounds_k_rule)):
+                from ..stages.classical_start import start_fit
+
+                fit = start_fit(state)
+                at_noise = bool(fit is not None and fit["at_noise"])
             result = estimate_bounds(config, state.scene, self.run_dir, self.device, start=state.start if automatic else None,
-                                     loss_scale=state.loss_scale)
+                                     loss_scale=state.loss_scale, start_at_noise=at_noise)
             write_json(path, result.to_json())
         if config.model.selector == "hard" and result.K != 2:
             raise ConfigError(f"method {config.method!r} uses the hard selector (2 materials) but the bounds have K = {result.K}; give 2-material bounds")

@@ -421,7 +421,8 @@ def threshold_fields(volume, boundaries: Sequence[float], air_cut: float) -> np.
 
 
 def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int = 4, k_rule: str = "bic", min_std: float = 0.0,
-                            restarts: int = 1, surfaces: bool = True, shells: bool = False) -> dict[str, Any]:
+                            restarts: int = 1, surfaces: bool = True, shells: bool = False, fit_values=None,
+                            fit_values_are: str = "") -> dict[str, Any]:
     """Per-material Dice and surface errors of a voxel volume [nx, ny, nz] (data units; a
     classical reconstruction or a NAF field sampled at the voxel centres), segmented the way a
     user would: thresholds at the automatic GMM bounds fitted on the volume itself
@@ -431,8 +432,10 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     surfaces are the iso-surfaces of the thresholds (marching cubes of :func:`threshold_fields`
     on the voxel grid). ``shells`` relabels the thresholded volume's partial-volume shells as
     :func:`material_metrics` does a model's (off by default: thresholding is what a user of a
-    classical volume does; ``benchmarks/classical.py --shells`` scores both ways). Same keys as
-    :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
+    classical volume does; ``benchmarks/classical.py --shells`` scores both ways). ``fit_values``: the
+    values the bounds are fitted on instead of the volume's (the refine-classical procedure's at-noise
+    rule fits a noisy start after a filter; ``fit_values_are`` says what they are); the volume itself is
+    thresholded. Same keys as :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
     from ..bounds import GMMBounds
 
     _check_labels(scene)
@@ -440,7 +443,7 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the GMM's remarks are kept in the result's notes
         gmm = GMMBounds(random_state=int(seed), max_components=max_components, k_rule=k_rule, min_std=min_std,
-                        n_init=int(restarts)).fit(vol)
+                        n_init=int(restarts)).fit(vol if fit_values is None else np.asarray(fit_values, dtype=np.float32))
     boundaries = [float(x) for x in gmm.boundaries_]
     air_cut = 0.5 * float(gmm.means_[0])
     pred = threshold_labels(vol, boundaries, air_cut)
@@ -454,7 +457,8 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
         moved["voxels"] = {str(k): n for k, n in shell_counts(pred, cleaned).items()}
         fields = relabel_fields(fields, pred, cleaned)
         pred = cleaned
-    definition = (f"labels: thresholds at the GMM bounds fitted on the volume (K = 1..{max_components} by {k_rule}, min_std {min_std:g}, "
+    fitted_on = "the volume" if fit_values is None else (fit_values_are or "values given beside the volume")
+    definition = (f"labels: thresholds at the GMM bounds fitted on {fitted_on} (K = 1..{max_components} by {k_rule}, min_std {min_std:g}, "
                   f"{restarts} start(s)), air below half the lowest class mean; "
                   + ("partial-volume shells relabelled as for a model's; " if shells else "") +
                   "class k -> GT label with the nearest attenuation level (air at 0 included) to the class's mean mu; surfaces: iso-surfaces of the "
@@ -462,7 +466,7 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_),
                 "shells_relabelled": bool(shells), "shell_cells_moved": moved,
                 "gmm": {"max_components": max_components, "k_rule": k_rule, "k_rule_used": gmm.k_rule_used_, "min_std": min_std,
-                        "restarts": int(restarts)}}
+                        "restarts": int(restarts), "fitted_on": fitted_on}}
     return _score_materials(scene, pred, mean_mu, (lambda fgeo: fields) if surfaces else None, fine=2,
                             definition=definition, settings=settings, field_geometry=scene.geometry)
 

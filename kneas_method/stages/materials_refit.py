@@ -37,6 +37,13 @@ REFIT_SEED_OFFSET = 15485863  # the materials refit's initialisation and draws: 
 LEGACY_KEY = "materials_refit"  # where checkpoints written before the stages kept the record
 
 
+def refits(bounds) -> bool:
+    """Whether the materials refit runs on a run with these bounds (a ``BoundsResult`` or None): where
+    they came from the peaks rule's fallback (``details["smoothed"]``), not from the at-noise rule, whose
+    mixtures already counted the filtered start's materials."""
+    return bounds is not None and bool(bounds.details.get("smoothed")) and not bounds.details.get("at_noise_rule")
+
+
 def refit_materials(trainer, volume: np.ndarray, alphas: Sequence[float], betas: Sequence[float], steps: int,
                     points_per_step: int, occupancy_weight: float, what: str = "trained") -> None:
     """Replace the trainer's model by a fresh one with ``len(alphas)`` materials and these bounds (data
@@ -91,7 +98,7 @@ class MaterialsRefitConfig(StageConfig):
 class MaterialsRefit(Stage):
     def run(self, state: RunState) -> None:
         trainer, bounds, config, c = state.trainer, state.bounds, state.config, self.config
-        if bounds is None or not bounds.details.get("smoothed"):
+        if not refits(bounds):
             return
         if state.records.get(self.name) is not None:
             say(f"materials: already found again on the trained volume for this run (K = {state.records[self.name]['K']})")

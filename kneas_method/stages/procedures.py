@@ -9,7 +9,8 @@ registers its own under the ``kneas.procedures`` entry-point group.
 * ``paper``: the paper's (SPEC §3-4): a NeAS-1M prior, GMM bounds on its volume (K = 1..4 by BIC),
   then training. No stage outside the core.
 * ``refine-classical``: the model refines a classical reconstruction: bounds from the histogram
-  peaks of an ASD-POCS start, the model warm-started from it and anchored to it during training
+  peaks of an ASD-POCS start (on a noisy scan, mixtures by BIC on the start after an edge-preserving
+  filter), the model warm-started from it and anchored to it during training
   (sampling only in the visual hull), then band-correction passes, SURE smoothing and, on a noisy
   scan, the materials found again; all within a time budget.
 """
@@ -31,7 +32,8 @@ class Procedure:
         settings: values for settings the run leaves at None, by section: ``model`` (``s_init``,
             ``lambda_eikonal``, ``occupancy_grid``), ``trainer`` (``lr_decay_at``) and ``run`` (the
             bounds' ``bounds_k_rule``, ``bounds_max_materials``, ``bounds_min_std``, ``bounds_gmm_restarts``,
-            ``bounds_upper_percentile``, ``bounds_upper_factor``, ``bounds_cover_percentile``).
+            ``bounds_upper_percentile``, ``bounds_upper_factor``, ``bounds_cover_percentile``,
+            ``bounds_at_noise_k_rule``).
     """
 
     name: str
@@ -64,7 +66,8 @@ REFINE_CLASSICAL = Procedure(
         "model": {"s_init": 100.0, "lambda_eikonal": 1e-5, "occupancy_grid": True},
         "trainer": {"lr_decay_at": 0.85},
         "run": {"bounds_k_rule": "peaks", "bounds_max_materials": 8, "bounds_min_std": 0.0, "bounds_gmm_restarts": 3,
-                "bounds_upper_percentile": 99.5, "bounds_upper_factor": 1.15, "bounds_cover_percentile": 99.99},
+                "bounds_upper_percentile": 99.5, "bounds_upper_factor": 1.15, "bounds_cover_percentile": 99.99,
+                "bounds_at_noise_k_rule": "bic"},
     },
 )
 
@@ -73,5 +76,5 @@ SETTINGS = {
     "model": ("s_init", "lambda_eikonal", "occupancy_grid"),
     "trainer": ("lr_decay_at",),
     "run": ("bounds_k_rule", "bounds_max_materials", "bounds_min_std", "bounds_gmm_restarts", "bounds_upper_percentile",
-            "bounds_upper_factor", "bounds_cover_percentile"),
+            "bounds_upper_factor", "bounds_cover_percentile", "bounds_at_noise_k_rule"),
 }

@@ -105,10 +105,12 @@ def after_training(state: RunState) -> dict:
         return {"passes": passes}
     state.say("time budget: the start fits the views to their noise, where the correction passes stop: training leaves "
               "time for the fits after them instead")
+    from .materials_refit import refits
+
     fit_steps, seconds = 0, 0.0
     if stages.smoothing is not None:
         fit_steps, seconds = int(stages.smoothing.steps), SMOOTHING_CHOICE_S
-    if stages.materials_refit is not None and state.bounds is not None and state.bounds.details.get("smoothed"):
+    if stages.materials_refit is not None and refits(state.bounds):
         # the refit fits the bounds' mixtures again (as long as they took), and where it finds more materials, a fresh
         # model for its steps
         fit_steps += int(stages.materials_refit.steps)
