@@ -134,19 +134,6 @@ def smoothed_rows(box, scene, views: tuple, volume, best: dict, device) -> dict:
     return out
 
 
-def cpu_rule_at_noise(volume, views: tuple, device) -> bool:
-    """Whether a classical ``volume`` (the fitting box's grid) fits the training ``views`` (``training_views``)
-    to their noise, the test by which the refine-classical procedure picks its at-noise K rule for k-neas's
-    start (``classical_start.start_fit``)."""
-    import numpy as np
-    from kneas_method.stages.band_correction import NOISE_FACTOR, at_noise
-
-    projections, projector = views
-    with torch.no_grad():
-        v = torch.as_tensor(np.asarray(volume), dtype=torch.float32, device=device)
-        return bool(at_noise(projections - projector.forward(v), NOISE_FACTOR)[0])
-
-
 def training_views(box, device) -> tuple:
     """``(projections [N, nV, nU] tensor, Projector)`` of the fitting box's training views."""
     import numpy as np
@@ -168,6 +155,7 @@ def main(argv=None) -> int:
     from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
     from kneas_method.engine.bounds_stage import histogram_smoothing
     from kneas_method.evaluation.surfaces import volume_material_metrics
+    from kneas_method.stages.band_correction import volume_at_noise
     from kneas_method.stages.procedures import REFINE_CLASSICAL
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -268,7 +256,7 @@ def main(argv=None) -> int:
                     row["dice_mean" + tail] = mm["dice_mean"]
                     row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
                     row["chamfer_mm" + tail] = per_material_chamfer(mm)
-                    at_noise = cpu_rule_at_noise(rec.volume, views, args.device)
+                    at_noise = volume_at_noise(rec.volume, *views)[0]
                     rule = cpu["bounds_at_noise_k_rule"] if at_noise else cpu["bounds_k_rule"]
                     fit_values = histogram_smoothing(vol) if at_noise else None
                     mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,

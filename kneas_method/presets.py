@@ -285,8 +285,10 @@ def describe(config: TrainConfig) -> list[str]:
                 (f", components at least {config.bounds_min_std:g} x the 99.5th percentile wide" if config.bounds_min_std else "")
         top = f"the top bound {config.bounds_upper_factor:g} x the {config.bounds_upper_percentile:g}th percentile" + \
               (f" or the {config.bounds_cover_percentile:g}th, whichever is higher" if config.bounds_cover_percentile else "")
-        noisy = config.bounds_at_noise_k_rule
-        if noisy is not None and noisy != config.bounds_k_rule and config.stages.classical_start is not None:
+        from .engine.bounds_stage import at_noise_k_rule
+
+        noisy = at_noise_k_rule(config)
+        if noisy is not None and config.stages.classical_start is not None:
             top += f"; {RULE_WORDS[noisy]} on the start after an edge-preserving filter where it fits the views to their noise"
         steps.append(f"bounds: {rule}, K = 1..{config.bounds_max_materials}{extra}, on the voxel values of {source}; {top}")
     steps += [cfg.describe() for cfg in stage_configs(config) if type(cfg).phase == "before-training"]

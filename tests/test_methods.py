@@ -301,7 +301,7 @@ def test_a_start_at_the_views_noise_gets_the_at_noise_k_rule(tmp_path):
     import numpy as np
 
     from conftest import sphere_scene
-    from kneas_method.engine.bounds_stage import estimate_bounds
+    from kneas_method.engine.bounds_stage import at_noise_k_rule, estimate_bounds
 
     base = dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu")
     cfg = presets.resolve(base)
@@ -323,9 +323,11 @@ def test_a_start_at_the_views_noise_gets_the_at_noise_k_rule(tmp_path):
     kept = presets.resolve(dataclasses.replace(base, bounds_at_noise_k_rule="peaks"))
     same = estimate_bounds(kept, scene, tmp_path / "c", torch.device("cpu"), start=start, start_at_noise=True)
     assert same.details["at_noise_rule"] is None and same.details["k_chosen_by"] == "peaks" and materials(same) == 3
-    given = estimate_bounds(presets.resolve(dataclasses.replace(base, num_materials=3)), scene, tmp_path / "d", torch.device("cpu"),
-                            start=start, start_at_noise=True)
+    given_cfg = presets.resolve(dataclasses.replace(base, num_materials=3))
+    given = estimate_bounds(given_cfg, scene, tmp_path / "d", torch.device("cpu"), start=start, start_at_noise=True)
     assert given.K == 3 and given.details["at_noise_rule"] is None  # K given: no rule picks it
+    assert "where it fits the views to their noise" not in next(n for n in presets.describe(given_cfg) if "bounds:" in n)
+    assert at_noise_k_rule(cfg) == "bic" and at_noise_k_rule(kept) is None and at_noise_k_rule(given_cfg) is None
 
 
 @pytest.mark.parametrize("name", ["paper", "cpu", "tiny"])

@@ -111,6 +111,7 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
     from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
     from kneas_method.evaluation.metrics import psnr3d
     from kneas_method.stages.smoothing import smooth_against_views
+    from kneas_method.stages.band_correction import volume_at_noise
 
     scene, _, _ = crop_scene()
     noisy = simulate_from_volume(scene.image, dataclasses.replace(SimulationConfig(n_detector=32, n_train=8, n_val=4), noise=True),
@@ -143,7 +144,7 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
         assert classical.main(["--scenes", str(path), "--runs", f"sart:iterations={count},relaxation=1.0", "--dice", "--out", str(out)]) == 0
         rule = json.loads(out.read_text())["rows"][0]["cpu_rule"]
         volume = sart(loaded.train.projections, loaded.geometry, loaded.train.angles, iterations=count, relaxation=1.0)
-        at_noise = classical.cpu_rule_at_noise(volume, (projections, projector), "cpu")
+        at_noise = volume_at_noise(volume, projections, projector)[0]
         assert rule["at_noise"] is at_noise and rule["k_rule"] == ("bic" if at_noise else "peaks")
         seen.append(at_noise)
     # both branches: on 8 views of a 32-pixel detector twelve sweeps fit part of the noise itself, whose

@@ -71,10 +71,10 @@ def test_the_anchor_holds_the_start_harder_where_it_fits_the_views_to_their_nois
     scene, truth, exact, noisy = _views()
     config = AnchorConfig()
     assert config.weight_at_noise > config.weight
-    assert anchor_weight(config, _state(tmp_path / "far", scene, truth * 0.5, exact)) == (config.weight, "default")
+    assert anchor_weight(config, _state(tmp_path / "far", scene, truth * 0.5, exact)) == (config.weight, False)
     state = _state(tmp_path / "noisy", scene, truth, noisy)
-    assert anchor_weight(config, state) == (config.weight_at_noise, "at-noise")
-    assert anchor_weight(dataclasses.replace(config, weight_at_noise=None), state) == (config.weight, "default")
+    assert anchor_weight(config, state) == (config.weight_at_noise, True)
+    assert anchor_weight(dataclasses.replace(config, weight_at_noise=None), state) == (config.weight, False)
 
     # the stage builds its loss term with that weight and records it
     trainer = Trainer(state.config, scene, tmp_path / "run", epochs=1, device="cpu", bounds=([0.1, 0.1], [0.25, 0.75]))

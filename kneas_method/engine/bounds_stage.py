@@ -220,6 +220,14 @@ def _line_integral_check(gmm, scene, what: str) -> float:
     return mu_needed
 
 
+def at_noise_k_rule(config) -> Optional[str]:
+    """The K rule for a classical start that fits the training views to their noise
+    (``config.bounds_at_noise_k_rule``), or None where the run's one rule decides: no such rule, the
+    same rule as ``bounds_k_rule``, or K given (``num_materials``)."""
+    rule = config.bounds_at_noise_k_rule
+    return None if rule in (None, config.bounds_k_rule) or config.num_materials is not None else rule
+
+
 def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple] = None, loss_scale: float = 1.0,
                     start_at_noise: bool = False) -> BoundsResult:
     """Bounds for a surface method (module docstring). ``start``: the classical start's ``(volume,
@@ -258,9 +266,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple]
     else:
         volume, what = start[0], start[1].upper()
     t0 = time.perf_counter()
-    noisy_rule = config.bounds_at_noise_k_rule
-    if start is None or not start_at_noise or K is not None or noisy_rule == config.bounds_k_rule:
-        noisy_rule = None  # the run's one rule decides
+    noisy_rule = at_noise_k_rule(config) if start is not None and start_at_noise else None
     k_rule = noisy_rule or config.bounds_k_rule
     if noisy_rule is not None:
         say(f"bounds: the {what} volume fits the views to their noise, so its histogram's peaks are smeared: Gaussian mixtures "
@@ -289,7 +295,7 @@ def estimate_bounds(config, scene, run_dir: Path, device, start: Optional[tuple]
         warnings.simplefilter("ignore", UserWarning)  # the mixtures' remarks: said below as "bounds warning:" lines, once
         if noisy_rule is not None:
             values = fallback_values()
-            gmm = run_mixtures(config, K=K, k_rule=noisy_rule).fit(values, fallback=values, fallback_name=f"the {what} after a bilateral filter")
+            gmm = run_mixtures(config, K=K, k_rule=noisy_rule).fit(values, fallback_name=f"the {what} after a bilateral filter")
         else:
             gmm = run_mixtures(config, K=K).fit(volume, fallback=fallback, fallback_name=f"the {what} after a bilateral filter")
     fit = gmm.to_dict()

@@ -29,7 +29,7 @@ from ..errors import ConfigError
 from ..model import field_has_surfaces
 from ..stages import RunState
 from . import report
-from .bounds_stage import BoundsResult, estimate_bounds
+from .bounds_stage import BoundsResult, at_noise_k_rule, estimate_bounds
 from .evaluate import evaluate_model_stage
 from .figures import run_figures
 from .loss_scale import LOSS_SCALE_TOP, loss_scale
@@ -87,8 +87,7 @@ class NeuralPipeline:
         else:
             automatic = config.bounds is None and config.model.alphas is None and config.bounds_source == "auto"
             at_noise = False
-            if (automatic and state.start is not None and config.num_materials is None
-                    and config.bounds_at_noise_k_rule not in (None, config.bounds_k_rule)):
+            if automatic and state.start is not None and at_noise_k_rule(config) is not None:
                 from ..stages.classical_start import start_fit
 
                 fit = start_fit(state)

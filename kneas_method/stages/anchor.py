@@ -211,24 +211,28 @@ class AnchorConfig(StageConfig):
     edge_contrast: float = field(default=0.0, metadata=at_least(0))
     region: AnchorRegion = "box"
 
+    @property
+    def other_weight_at_noise(self) -> bool:
+        """Whether a start at the views' noise gets a weight of its own (``weight_at_noise``)."""
+        return self.weight_at_noise is not None and self.weight_at_noise != self.weight
+
     def describe(self) -> str:
         labels = f", its labels away from its edges at weight {self.occupancy:g}" if self.occupancy else ""
-        at_noise = (f" ({self.weight_at_noise:g} where the start fits the views to their noise)"
-                    if self.weight_at_noise is not None and self.weight_at_noise != self.weight else "")
+        at_noise = f" ({self.weight_at_noise:g} where the start fits the views to their noise)" if self.other_weight_at_noise else ""
         return f"anchor: the classical start kept as a prior during training, weight {self.weight:g}{at_noise}{labels}"
 
 
-def anchor_weight(config: AnchorConfig, state: RunState) -> tuple[float, str]:
-    """The anchor's weight in ``state``'s run and why: ``(config.weight_at_noise, "at-noise")`` where the
-    classical start fits the training views to their noise (``classical_start.start_fit``), else
-    ``(config.weight, "default")``."""
-    if config.weight_at_noise is not None and config.weight_at_noise != config.weight:
+def anchor_weight(config: AnchorConfig, state: RunState) -> tuple[float, bool]:
+    """The anchor's weight in ``state``'s run and whether it is the at-noise one: ``(config.weight_at_noise,
+    True)`` where the classical start fits the training views to their noise (``classical_start.start_fit``),
+    else ``(config.weight, False)``."""
+    if config.other_weight_at_noise:
         from .classical_start import start_fit
 
         fit = start_fit(state)
         if fit is not None and fit["at_noise"]:
-            return float(config.weight_at_noise), "at-noise"
-    return float(config.weight), "default"
+            return float(config.weight_at_noise), True
+    return float(config.weight), False
 
 
 class AnchorStage(Stage):
@@ -237,8 +241,8 @@ class AnchorStage(Stage):
         if state.start is None:
             return
         volume, algorithm = state.start
-        weight, why = anchor_weight(c, state)
-        state.records[self.name] = {"weight": weight, "at_noise": why == "at-noise"}
+        weight, at_noise = anchor_weight(c, state)
+        state.records[self.name] = {"weight": weight, "at_noise": at_noise}
         anchor = build_anchor(trainer, volume, weight, int(c.points), occupancy_weight=float(c.occupancy),
                               edge_contrast=float(c.edge_contrast), region=str(c.region))
         if anchor is None:
@@ -254,6 +258,6 @@ class AnchorStage(Stage):
             labels = f", its values held less at its sharp edges (half at a step of {c.edge_contrast:g} of its range per voxel)"
         if c.occupancy > 0 and trainer.model.has_surfaces:
             labels += f", and its labels away from its edges, weight {c.occupancy:g} inside it"
-        because = " (the start fits the views to their noise)" if why == "at-noise" else ""
+        because = " (the start fits the views to their noise)" if at_noise else ""
         state.say(f"{trainer.label}: anchor: the {algorithm.upper()} volume kept as a prior, weight {weight:g}{because}, "
                   f"{c.points:,} voxel centres per step{where}{labels} (--skip-stages anchor trains on the projections alone)")

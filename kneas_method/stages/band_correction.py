@@ -43,12 +43,13 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from ..errors import KneasError
 
-__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "NOISE_FACTOR", "at_noise", "band_cgls", "band_fields", "interpolate_fields",
+__all__ = ["grow", "gradient_magnitude", "edge_band", "gradient_weights", "box_mean", "noise_variance", "NOISE_FACTOR", "at_noise", "volume_at_noise", "band_cgls", "band_fields", "interpolate_fields",
            "requery_band",
            "discretisation_error",
            "band_correction", "Correction"]
@@ -124,6 +125,16 @@ def at_noise(residual: torch.Tensor, noise_factor: float = NOISE_FACTOR) -> tupl
     square and the noise variance."""
     sigma2, mean_square = noise_variance(residual), float((residual * residual).mean())
     return mean_square <= noise_factor * sigma2, mean_square, sigma2
+
+
+def volume_at_noise(volume, projections: torch.Tensor, projector, noise_factor: float = NOISE_FACTOR) -> tuple[bool, float, float]:
+    """:func:`at_noise` of the residual of ``volume [nx, ny, nz]`` (numpy or torch, the projector's grid)
+    against ``projections [N, nV, nU]``: whether the volume fits them to their noise (the test by which a
+    run's classical start is found at the views' noise, ``classical_start.start_fit``)."""
+    v = torch.as_tensor(np.asarray(volume, dtype=np.float32) if not torch.is_tensor(volume) else volume,
+                        dtype=torch.float32, device=projections.device)
+    with torch.no_grad():
+        return at_noise(projections - projector.forward(v), noise_factor)
 
 
 def band_cgls(A, r: torch.Tensor, weights: torch.Tensor, iterations: int,

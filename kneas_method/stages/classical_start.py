@@ -73,15 +73,11 @@ def start_fit(state: RunState) -> Optional[dict]:
         return None
     record = state.records.setdefault("classical-start", {})
     if "fit" not in record:
-        import torch
-
-        from .band_correction import NOISE_FACTOR, at_noise
+        from .band_correction import NOISE_FACTOR, volume_at_noise
 
         correction = state.config.stages.correction
         factor = NOISE_FACTOR if correction is None else float(correction.noise_factor)
-        volume = torch.as_tensor(np.asarray(state.start[0], dtype=np.float32), device=state.device)
-        with torch.no_grad():
-            level, mean_square, sigma2 = at_noise(state.views() - state.projector().forward(volume), factor)
+        level, mean_square, sigma2 = volume_at_noise(state.start[0], state.views(), state.projector(), factor)
         record["fit"] = {"mean_square": float(mean_square), "noise_variance": float(sigma2), "at_noise": bool(level)}
         state.say(f"classical start: the {state.start[1].upper()} volume's residual {mean_square:.3g} (mean square) is "
                   + (f"at the data's noise ({sigma2:.3g}): the views hold nothing more it could fit" if level
