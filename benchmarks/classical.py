@@ -112,26 +112,62 @@ def start_volume(spec, scene, box):
     return volume.astype(np.float32)
 
 
-def smoothed_rows(box, scene, views: tuple, volume, best: dict, device) -> dict:
+def smoothed_rows(box, scene, views: tuple, volume, best: dict, device) -> tuple[dict, dict]:
     """``smoothed`` (and, where ``best`` holds the best count's volume, ``smoothed_best``): psnr3d /
     ssim3d of the run's volume [nx, ny, nz] (on the fitting ``box``; numpy or a tensor) after k-neas's
     smoothing, with the filter it chose. ``views``: ``(projections tensor, Projector)`` of the box's
     training views. The noise is estimated over the whole grid (a classical volume has no empty space
-    set to 0), and the smoothed volume is clamped at 0 as the stage's fit target is."""
+    set to 0), and the smoothed volume is clamped at 0 as the stage's fit target is. Returns those rows
+    and the smoothed volumes by the same keys (the box's grid, tensors)."""
     from kneas_method.evaluation.metrics import psnr3d, ssim3d
     from kneas_method.stages.smoothing import smooth_against_views
 
     projections, projector = views
-    out = {}
+    out, volumes = {}, {}
     for key, v, extra in (("smoothed", volume, {}), ("smoothed_best", best.get("volume"), {"iteration": best.get("iteration")})):
         if v is None:
             continue
         v = torch.as_tensor(v, dtype=torch.float32, device=device)
         smoothed, choice = smooth_against_views(v, projections, projector, mask=torch.ones(v.shape, dtype=torch.bool, device=device))
-        s = box.crop(smoothed.clamp_min(0).cpu().numpy())
+        volumes[key] = smoothed.clamp_min(0)
+        s = box.crop(volumes[key].cpu().numpy())
         out[key] = {**extra, "filter": choice.label, "psnr3d": round(psnr3d(s, scene.image), 4),
                     "ssim3d": round(ssim3d(s, scene.image), 4)}
-    return out
+    return out, volumes
+
+
+def tissue_rows(volume, box, scene, views: tuple, shells: bool, tail: str) -> dict:
+    """Dice and Chamfer per material of a classical ``volume`` [nx, ny, nz] (the fitting ``box``'s grid,
+    numpy or a tensor) thresholded at GMM bounds fitted on itself, against ``scene``'s labels: under the
+    paper's K rule (``dice``, ``chamfer_mm``) and under the K rule the cpu preset's procedure gives
+    k-neas's start (``*_cpu_rule``; ``cpu_rule`` says which). Every key ends in ``tail``."""
+    import numpy as np
+    from kneas_method.engine.bounds_stage import histogram_smoothing
+    from kneas_method.evaluation.surfaces import volume_material_metrics
+    from kneas_method.stages.band_correction import volume_at_noise
+    from kneas_method.stages.procedures import REFINE_CLASSICAL
+
+    cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
+    vol = np.ascontiguousarray(box.crop(torch.as_tensor(volume).cpu().numpy()))
+    surfaces = scene.membership is not None
+    row = {}
+    mm = volume_material_metrics(vol, scene, surfaces=surfaces, shells=shells)
+    row["dice" + tail] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
+    row["dice_mean" + tail] = mm["dice_mean"]
+    row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
+    row["chamfer_mm" + tail] = per_material_chamfer(mm)
+    at_noise = volume_at_noise(volume, *views)[0]
+    rule = cpu["bounds_at_noise_k_rule"] if at_noise else cpu["bounds_k_rule"]
+    mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
+                                 min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"], surfaces=surfaces,
+                                 shells=shells, fit_values=histogram_smoothing(vol) if at_noise else None,
+                                 fit_values_are="the volume after the bounds' edge-preserving filter" if at_noise else "")
+    row["cpu_rule" + tail] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
+    row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
+    row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
+    row["chamfer_mm_mean_cpu_rule" + tail] = mv.get("chamfer_mm_mean")
+    row["chamfer_mm_cpu_rule" + tail] = per_material_chamfer(mv)
+    return row
 
 
 def training_views(box, device) -> tuple:
@@ -153,10 +189,6 @@ def main(argv=None) -> int:
     from kneas_method.console import say
     from kneas_method.data.truncation import fitting_scene
     from kneas_method.evaluation.metrics import psnr3d, ssim3d, volume_metrics
-    from kneas_method.engine.bounds_stage import histogram_smoothing
-    from kneas_method.evaluation.surfaces import volume_material_metrics
-    from kneas_method.stages.band_correction import volume_at_noise
-    from kneas_method.stages.procedures import REFINE_CLASSICAL
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="foot",
@@ -177,7 +209,8 @@ def main(argv=None) -> int:
                     "report the best iteration count of each run; needs ground truth")
     ap.add_argument("--smooth", action="store_true", help="also score the volume after the smoothing k-neas's smoothing stage "
                     "applies (SURE's filter, checked against the views: stages.smoothing.smooth_against_views), and with --trace "
-                    "the best count's volume smoothed the same way: smoothed and smoothed_best in the JSON; needs ground truth")
+                    "the best count's volume smoothed the same way: smoothed and smoothed_best in the JSON; with --dice their tissues "
+                    "too (the --dice keys ending in _smoothed and _smoothed_best); needs ground truth")
     ap.add_argument("--init", default=None, help="start every iterative run from this volume instead of zeros: a .npy on the "
                     "scene's grid (a run's asd-pocs_volume.npy, kneas-export volume's attenuation.npy), or 'truth-classes', "
                     "the true volume with each of its labelled classes at its mean value (a perfect K-material prior)")
@@ -246,28 +279,15 @@ def main(argv=None) -> int:
             if trace:
                 row["trace"] = trace
                 row["best"] = max(trace, key=lambda t: t["psnr3d"])
+            smoothed = {}
             if args.smooth:
-                row.update(smoothed_rows(box, scene, views, rec.volume, best, args.device))
+                smoothed_scores, smoothed = smoothed_rows(box, scene, views, rec.volume, best, args.device)
+                row.update(smoothed_scores)
             if args.dice and scene.labels is not None:
-                cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
                 for tail, shells in [("", False)] + ([("_shells", True)] if args.shells else []):
-                    mm = volume_material_metrics(vol, scene, surfaces=scene.membership is not None, shells=shells)
-                    row["dice" + tail] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
-                    row["dice_mean" + tail] = mm["dice_mean"]
-                    row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
-                    row["chamfer_mm" + tail] = per_material_chamfer(mm)
-                    at_noise = volume_at_noise(rec.volume, *views)[0]
-                    rule = cpu["bounds_at_noise_k_rule"] if at_noise else cpu["bounds_k_rule"]
-                    fit_values = histogram_smoothing(vol) if at_noise else None
-                    mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
-                                                 min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"],
-                                                 surfaces=scene.membership is not None, shells=shells, fit_values=fit_values,
-                                                 fit_values_are="the volume after the bounds' edge-preserving filter" if at_noise else "")
-                    row["cpu_rule"] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
-                    row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
-                    row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
-                    row["chamfer_mm_mean_cpu_rule" + tail] = mv.get("chamfer_mm_mean")
-                    row["chamfer_mm_cpu_rule" + tail] = per_material_chamfer(mv)
+                    row.update(tissue_rows(rec.volume, box, scene, views, shells, tail))
+                    for key, volume in smoothed.items():
+                        row.update(tissue_rows(volume, box, scene, views, shells, tail + "_" + key))
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             if "init" in row:
@@ -294,7 +314,8 @@ def main(argv=None) -> int:
                        "same with the cpu preset's K rule (cpu_rule: the rule, the rule that decided K, K, and at_noise: the volume "
                        "fits the views to their noise, so the procedure's at-noise rule on the volume after the bounds' filter); a material no "
                        "class was matched to has Dice 0 and no Chamfer; keys ending in _shells: the same with the partial-volume shells "
-                       "relabelled first (--shells)" if args.dice else "")
+                       "relabelled first (--shells); with --smooth, keys ending in _smoothed / _smoothed_best: the same for the "
+                       "smoothed volumes" if args.dice else "")
                     + ("; trace: psnr3d / ssim3d after every iteration (the seconds include scoring them); best: its "
                        "highest psnr3d" if args.trace else "")
                     + ("; smoothed / smoothed_best: the run's volume / the best count's volume after k-neas's smoothing "

@@ -111,6 +111,7 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
     from kneas_method.data.simulate import SimulationConfig, simulate_from_volume
     from kneas_method.evaluation.metrics import psnr3d
     from kneas_method.stages.smoothing import smooth_against_views
+    from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.stages.band_correction import volume_at_noise
 
     scene, _, _ = crop_scene()
@@ -119,7 +120,7 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
     noisy.labels = scene.labels
     path = save_naf(noisy, tmp_path / "crop-noisy.pickle")
     out = tmp_path / "bar.json"
-    assert classical.main(["--scenes", str(path), "--runs", "sart:iterations=12,relaxation=1.0", "--trace", "--smooth",
+    assert classical.main(["--scenes", str(path), "--runs", "sart:iterations=12,relaxation=1.0", "--trace", "--smooth", "--dice",
                            "--out", str(out)]) == 0
     row = json.loads(out.read_text())["rows"][0]
     best = row["best"]["iteration"]
@@ -133,6 +134,10 @@ def test_the_classical_bar_smooths_the_run_and_its_best_count_as_kneas_smooths_i
         smoothed, choice = smooth_against_views(volume, projections, projector, mask=torch.ones(volume.shape, dtype=torch.bool))
         assert row[key]["filter"] == choice.label
         assert row[key]["psnr3d"] == pytest.approx(psnr3d(smoothed.clamp_min(0).numpy(), loaded.image), abs=1e-3)
+        # --dice with --smooth: the smoothed volume thresholded as the run's own is (the paper's K rule)
+        tissues = volume_material_metrics(smoothed.clamp_min(0).numpy(), loaded, surfaces=False)
+        assert row["dice_" + key] == {k: round(v["dice"], 3) for k, v in tissues["materials"].items()}
+    assert row["dice_smoothed_best"] != row["dice"] and "chamfer_mm_cpu_rule_smoothed_best" in row
     # the best count's volume fits the views to their noise and keeps its filter; the last count's may be refused
     # (a filter may not give up more fit than the noise), so it is never worse than the run's own volume
     assert row["smoothed_best"]["filter"] != "none" and row["smoothed_best"]["psnr3d"] > row["best"]["psnr3d"]
