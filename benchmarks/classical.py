@@ -136,11 +136,13 @@ def smoothed_rows(box, scene, views: tuple, volume, best: dict, device) -> tuple
     return out, volumes
 
 
-def tissue_rows(volume, box, scene, views: tuple, shells: bool, tail: str) -> dict:
+def tissue_rows(volume, box, scene, views: tuple, shells: bool, suffix: str = "") -> dict:
     """Dice and Chamfer per material of a classical ``volume`` [nx, ny, nz] (the fitting ``box``'s grid,
     numpy or a tensor) thresholded at GMM bounds fitted on itself, against ``scene``'s labels: under the
     paper's K rule (``dice``, ``chamfer_mm``) and under the K rule the cpu preset's procedure gives
-    k-neas's start (``*_cpu_rule``; ``cpu_rule`` says which). Every key ends in ``tail``."""
+    k-neas's start (``*_cpu_rule``; ``cpu_rule`` says which); with ``shells``, the same again with the
+    partial-volume shells relabelled (keys ending in ``_shells``). Every key ends in ``suffix``. Whether the
+    volume fits the views to their noise, and the filtered values the at-noise rule fits, are computed once."""
     import numpy as np
     from kneas_method.engine.bounds_stage import histogram_smoothing
     from kneas_method.evaluation.surfaces import volume_material_metrics
@@ -150,23 +152,26 @@ def tissue_rows(volume, box, scene, views: tuple, shells: bool, tail: str) -> di
     cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
     vol = np.ascontiguousarray(box.crop(torch.as_tensor(volume).cpu().numpy()))
     surfaces = scene.membership is not None
-    row = {}
-    mm = volume_material_metrics(vol, scene, surfaces=surfaces, shells=shells)
-    row["dice" + tail] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
-    row["dice_mean" + tail] = mm["dice_mean"]
-    row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
-    row["chamfer_mm" + tail] = per_material_chamfer(mm)
     at_noise = volume_at_noise(volume, *views)[0]
     rule = cpu["bounds_at_noise_k_rule"] if at_noise else cpu["bounds_k_rule"]
-    mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
-                                 min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"], surfaces=surfaces,
-                                 shells=shells, fit_values=histogram_smoothing(vol) if at_noise else None,
-                                 fit_values_are="the volume after the bounds' edge-preserving filter" if at_noise else "")
-    row["cpu_rule" + tail] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
-    row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
-    row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
-    row["chamfer_mm_mean_cpu_rule" + tail] = mv.get("chamfer_mm_mean")
-    row["chamfer_mm_cpu_rule" + tail] = per_material_chamfer(mv)
+    fit_values = histogram_smoothing(vol) if at_noise else None
+    row = {}
+    for tail, relabel in [("", False)] + ([("_shells", True)] if shells else []):
+        tail += suffix
+        mm = volume_material_metrics(vol, scene, surfaces=surfaces, shells=relabel)
+        row["dice" + tail] = {k: round(v["dice"], 3) for k, v in mm["materials"].items()}
+        row["dice_mean" + tail] = mm["dice_mean"]
+        row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
+        row["chamfer_mm" + tail] = per_material_chamfer(mm)
+        mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
+                                     min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"], surfaces=surfaces,
+                                     shells=relabel, fit_values=fit_values,
+                                     fit_values_are="the volume after the bounds' edge-preserving filter" if at_noise else "")
+        row["cpu_rule" + tail] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
+        row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
+        row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
+        row["chamfer_mm_mean_cpu_rule" + tail] = mv.get("chamfer_mm_mean")
+        row["chamfer_mm_cpu_rule" + tail] = per_material_chamfer(mv)
     return row
 
 
@@ -284,10 +289,9 @@ def main(argv=None) -> int:
                 smoothed_scores, smoothed = smoothed_rows(box, scene, views, rec.volume, best, args.device)
                 row.update(smoothed_scores)
             if args.dice and scene.labels is not None:
-                for tail, shells in [("", False)] + ([("_shells", True)] if args.shells else []):
-                    row.update(tissue_rows(rec.volume, box, scene, views, shells, tail))
-                    for key, volume in smoothed.items():
-                        row.update(tissue_rows(volume, box, scene, views, shells, tail + "_" + key))
+                row.update(tissue_rows(rec.volume, box, scene, views, args.shells))
+                for key, volume in smoothed.items():
+                    row.update(tissue_rows(volume, box, scene, views, args.shells, "_" + key))
             rows.append(row)
             settings = ",".join(f"{k}={v}" for k, v in kwargs.items()) or "(defaults)"
             if "init" in row:

@@ -43,7 +43,6 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Optional
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -131,8 +130,7 @@ def volume_at_noise(volume, projections: torch.Tensor, projector, noise_factor: 
     """:func:`at_noise` of the residual of ``volume [nx, ny, nz]`` (numpy or torch, the projector's grid)
     against ``projections [N, nV, nU]``: whether the volume fits them to their noise (the test by which a
     run's classical start is found at the views' noise, ``classical_start.start_fit``)."""
-    v = torch.as_tensor(np.asarray(volume, dtype=np.float32) if not torch.is_tensor(volume) else volume,
-                        dtype=torch.float32, device=projections.device)
+    v = torch.as_tensor(volume, dtype=torch.float32, device=projections.device)
     with torch.no_grad():
         return at_noise(projections - projector.forward(v), noise_factor)
 
