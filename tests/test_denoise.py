@@ -275,43 +275,6 @@ def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
     assert state["extra"]["stages"]["smoothing"] == record
 
 
-def test_the_smoothing_keeps_its_fit_only_where_sure_says_it_gains():
-    from kneas_method.stages.denoise import Denoising
-    from kneas_method.stages.smoothing import describe_fit, fit_keeps_the_gain
-
-    choice = Denoising("bilateral", 2.2, 1.0, sure={"none": 20.8, "bilateral 2.2 x1": 18.0})
-    assert fit_keeps_the_gain(choice, 1.0)  # 18 + 1 < 20.8
-    assert not fit_keeps_the_gain(choice, 2.8) and not fit_keeps_the_gain(choice, 38.0)  # the fit loses what the filter gains
-    assert describe_fit(choice, 1.0, True).endswith(": kept")
-    assert "put back as it was" in describe_fit(choice, 38.0, False) and "18 + 38 = 56" in describe_fit(choice, 38.0, False)
-
-
-@pytest.mark.parametrize("kept", [True, False])
-def test_a_smoothing_fit_that_loses_puts_the_model_back(tmp_path, capsys, monkeypatch, kept):
-    """Where the fit is judged to lose (forced here), the run ends with the model it had before the
-    smoothing: the volume after the smoothing scores what it did before it; where it is kept, the fit
-    moved it."""
-    import kneas_method.stages.smoothing as smoothing
-    from kneas_method.data.naf import save_naf
-    from kneas_method.data.simulate import SimulationConfig
-
-    monkeypatch.setattr(smoothing, "fit_keeps_the_gain", lambda choice, residual: kept)
-    scene_path = save_naf(sphere_scene(SimulationConfig(n_voxel=24, voxel_mm=6.0, n_detector=32, n_train=16, n_val=2,
-                                                        noise=True, photons=300.0)), tmp_path / "noisy.pickle")
-    argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
-            "--output-dir", str(tmp_path / "out"), "--procedure", "paper", "--add-stages", "smoothing",
-            "--trainer.epochs", "4", "--stages.smoothing.steps", "30", "--stages.smoothing.points", "512"]
-    code, out, err = run(argv, capsys)
-    assert code == 0, err
-    metrics = json.loads((run_dir_of(out) / "metrics.json").read_text())
-    record = metrics["stages"]["smoothing"]
-    assert record["filter"] != "none"  # this scene's noise is smoothed
-    assert record["fit_kept"] is kept and record["fit_residual"] > 0
-    scores = {s["after"]: s["psnr3d"] for s in metrics["stage_scores"]}
-    assert (scores["smoothing"] == scores["training"]) is (not kept)
-    assert ("put back as it was" in out) is (not kept)
-
-
 def test_smoothing_settings_and_older_runs(capsys):
     import dataclasses
 

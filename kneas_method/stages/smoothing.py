@@ -7,10 +7,7 @@ correlated noise, raising the noise estimate while the smoothed volume's project
 training views closer than their noise (the discrepancy principle), and refusing a filter whose
 projections fit the views worse than the unsmoothed volume's by more than their noise (it would take
 out texture the views show). Where no filter lowers the estimate, or the one that does is refused
-(a clean scan), the volume is left as it is and the model is not touched. The model is then fitted to
-the smoothed volume, and put back as it was where what that fit leaves of the smoothed volume is more
-than SURE says the filter takes out (``fit_keeps_the_gain``): the model's volume is what the run
-keeps, not the filter's.
+(a clean scan), the volume is left as it is and the model is not touched.
 """
 
 from __future__ import annotations
@@ -110,26 +107,6 @@ def describe_choice(choice) -> list[str]:
     return lines
 
 
-def fit_keeps_the_gain(choice, fit_residual: float) -> bool:
-    """Whether the model fitted to the smoothed volume is expected closer to the noise-free volume than
-    the model as it was: SURE's estimate for the chosen filter (``choice``, a ``denoise.Denoising``) plus
-    what the fit leaves of it (``fit_residual``: the squared difference between the fitted model's
-    volume and the smoothed one, summed over the voxels it was fitted on, in SURE's units) is below
-    SURE's estimate for no filter. A model that cannot take up the smoothed volume's texture (a lightly
-    noisy real scan) adds more error in the fit than the filter takes out."""
-    return float(choice.sure[choice.label]) + float(fit_residual) < float(choice.sure["none"])
-
-
-def describe_fit(choice, fit_residual: float, kept: bool) -> str:
-    """The smoothing fit's outcome in a line (:func:`fit_keeps_the_gain`)."""
-    total = float(choice.sure[choice.label]) + float(fit_residual)
-    head = (f"the model's fit leaves {fit_residual:.4g} of the smoothed volume (squares summed), so the fitted model's "
-            f"estimated error is {choice.sure[choice.label]:.4g} + {fit_residual:.4g} = {total:.4g} against the unsmoothed "
-            f"volume's {choice.sure['none']:.4g}")
-    return head + (": kept" if kept else ": the fit loses more than the filter gains, and the model is put back as it was "
-                   "before the fit (the volume left unsmoothed)")
-
-
 class Smoothing(Stage):
     def run(self, state: RunState) -> None:
         c, trainer, scene = self.config, state.trainer, state.scene
@@ -141,21 +118,11 @@ class Smoothing(Stage):
         smoothed, choice = smooth_against_views(volume, state.views(), state.projector(), c.rule)
         for line in describe_choice(choice):
             state.say("smoothing: " + line)
-        record = choice.to_json()
         if choice.filter != "none":
             what = filter_words(choice)
-            target = smoothed.clamp_min(0)
-            region = volume != 0
-            before = {k: v.detach().clone() for k, v in trainer.model.state_dict().items()}
-            fit_in_region(trainer, target.cpu().numpy(), region.cpu().numpy(), int(c.steps), int(c.points), float(c.lr),
+            region = (volume != 0).cpu().numpy()
+            fit_in_region(trainer, smoothed.clamp_min(0).cpu().numpy(), region, int(c.steps), int(c.points), float(c.lr),
                           curvature=float(c.curvature), what=f"the volume smoothed by {what}", stage="smoothing")
-            state.moved(region)
-            residual = float(((state.model_volume() - target)[region] ** 2).sum())
-            kept = fit_keeps_the_gain(choice, residual)
-            state.say("smoothing: " + describe_fit(choice, residual, kept))
-            if not kept:
-                trainer.model.load_state_dict(before)
-                state.forget_volume()
-            record.update(fit_residual=residual, fit_kept=kept)
-        state.records[self.name] = {**record, "seconds": time.perf_counter() - started}
+            state.moved(volume != 0)
+        state.records[self.name] = {**choice.to_json(), "seconds": time.perf_counter() - started}
         trainer.save(complete=True)
