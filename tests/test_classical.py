@@ -412,6 +412,12 @@ def test_volume_material_metrics_of_the_exact_label_volume_are_perfect():
     beside = volume_material_metrics(noisy, scene, surfaces=False, fit_values=exact, fit_values_are="the exact volume")
     assert beside["boundaries"] == pytest.approx(m["boundaries"]) and beside["gmm"]["fitted_on"] == "the exact volume"
     assert beside["dice_mean"] < 0.99 and m["gmm"]["fitted_on"] == "the volume"
+    # thresholds given (a model's own bounds): no mixture fitted, air below half the first class's mean
+    given = volume_material_metrics(noisy, scene, surfaces=False, boundaries=m["boundaries"], boundaries_are="the exact bounds")
+    assert given["boundaries"] == pytest.approx(m["boundaries"]) and "gmm" not in given and given["boundaries_are"] == "the exact bounds"
+    first = noisy[(noisy >= m["boundaries"][0]) & (noisy < m["boundaries"][1])]
+    assert given["air_cut"] == pytest.approx(0.5 * first.mean()) and "thresholds at the exact bounds" in given["definition"]
+    assert given["dice_mean"] < 0.99
 
 
 def test_trace_scores_every_count_and_keeps_the_best(tmp_path, capsys):

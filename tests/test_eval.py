@@ -47,6 +47,32 @@ def test_eval_writes_metrics_and_figures(run_dir, capsys):
     assert "slices.png" in figs and "weights.png" in figs and any(f.startswith("projection-") for f in figs)
 
 
+def test_eval_reads_materials_from_the_values_at_the_models_bounds(run_dir, tmp_path):
+    """``--materials values``: the model's volume thresholded at its own bounds, scored as a classical volume is
+    (the same Dice as thresholding the exported volume by hand)."""
+    from kneas_method.engine.loading import load_run
+    from kneas_method.evaluation.metrics import dice
+    from kneas_method.evaluation.surfaces import gt_levels, match_materials, threshold_labels
+
+    out = tmp_path / "values"
+    assert _cli([str(run_dir), "--materials", "values", "--keep-shells", "--no-figures", "--no-surfaces", "-o", str(out)]) == 0
+    mat = json.loads((out / "metrics.json").read_text())["materials"]
+    run = load_run(str(run_dir), device="cpu")
+    alphas, betas = run.model.bounds
+    assert mat["readout"] == "values" and mat["boundaries"] == pytest.approx([*betas, betas[-1] + alphas[-1]])
+    assert "the model's own attenuation bounds" in mat["definition"] and "gmm" not in mat and mat["shells_relabelled"] is False
+    _, _, vol = eval_cli.evaluate_run(run, device="cpu", surfaces=False, shells=False)
+    labels = threshold_labels(vol, mat["boundaries"], mat["air_cut"])
+    for k, entry in enumerate(mat["matching"]):  # each class's mean value where it holds voxels, matched to the nearest level
+        if (labels == k + 1).any():
+            assert entry["mean_mu"] == pytest.approx(float(vol[labels == k + 1].mean()), rel=1e-5)
+    matching = match_materials([e["mean_mu"] for e in mat["matching"]], gt_levels(run.scene))
+    assert matching == [e["gt_label"] for e in mat["matching"]]
+    mapped = np.concatenate([[0], matching])[labels]
+    for entry in mat["materials"].values():
+        assert entry["dice"] == pytest.approx(dice(mapped, run.scene.labels, entry["label"]))
+
+
 def test_eval_checkpoint_and_output(run_dir, tmp_path):
     ckpt = next((run_dir / "checkpoints").glob("*.ckpt"))
     out = tmp_path / "e"

@@ -13,7 +13,8 @@ Writes ``metrics.json`` and figures to ``-o DIR`` (default ``RUN_DIR/eval-<times
   units), also against the truth's maximum and range (``psnr3d_truth_peak``, ``ssim3d_truth_range``);
 * built-in scenes: per ground-truth material Dice, Chamfer distance (mm) and F-score at
   one voxel, with the material matching. SDF methods: labels and surfaces from the
-  fields, partial-volume shells relabelled (``--keep-shells``: as they are); methods without
+  fields, partial-volume shells relabelled (``--keep-shells``: as they are), or with
+  ``--materials values`` the model's volume thresholded at its own bounds; methods without
   (classical, NAF): the volume thresholded at the automatic GMM bounds fitted on it, the way
   a user would segment it
   (:mod:`kneas_method.evaluation.surfaces` documents the definitions).
@@ -44,13 +45,23 @@ def _parser() -> argparse.ArgumentParser:
                    help="score the model's labels and surfaces as they are, without relabelling partial-volume shells "
                         "(thin layers of a material between a lower and a higher one; see kneas_method.evaluation.partial_volume)")
     p.add_argument("--air-threshold", type=float, default=0.5, help="total selector weight below which a point is air (default 0.5)")
+    p.add_argument("--materials", choices=MATERIAL_READOUTS, default="surfaces",
+                   help="how an SDF model's materials are read: surfaces (default, the paper's): each point belongs to the material "
+                        "its signed distance fields show there; values: its volume thresholded at the model's own attenuation bounds, "
+                        "as a classical volume is thresholded at its own (real anatomy's texture is held by mixing materials, "
+                        "so the fields' labels can disagree with the values)")
     p.add_argument("--figure-views", type=int, default=3, help="held-out views drawn as figures (default 3; 0 = none)")
     p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
     return p
 
 
-def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, air_threshold: float = 0.5, shells: bool = True):
-    """``(metrics dict, projections [N, nV, nU], volume [nx, ny, nz] or None)`` of a loaded run."""
+MATERIAL_READOUTS = ("surfaces", "values")
+
+
+def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, air_threshold: float = 0.5, shells: bool = True,
+                 materials: str = "surfaces"):
+    """``(metrics dict, projections [N, nV, nU], volume [nx, ny, nz] or None)`` of a loaded run; ``materials``: how an
+    SDF model's materials are read (:data:`MATERIAL_READOUTS`, the ``--materials`` help)."""
     from ..engine.evaluate import evaluate_model, evaluate_volume
 
     _say(f"held-out views and volume: {len(run.scene.val)} views, {run.scene.geometry.n_voxel} voxels")
@@ -58,7 +69,15 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
         metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True, fitted=run.fitted)
     else:
         metrics, (proj, vol) = evaluate_model(run.model, run.scene, run.config, device, return_arrays=True)
-    if run.has_surfaces and run.scene.labels is not None:
+    if run.has_surfaces and run.scene.labels is not None and materials == "values" and vol is not None:
+        from ..evaluation.surfaces import volume_material_metrics
+
+        alphas, betas = run.model.bounds
+        metrics["materials"] = volume_material_metrics(vol, run.scene, boundaries=[*betas, betas[-1] + alphas[-1]],
+                                                       boundaries_are="the model's own attenuation bounds", shells=shells,
+                                                       surfaces=surfaces and run.scene.membership is not None)
+        metrics["materials"]["readout"] = "values"
+    elif run.has_surfaces and run.scene.labels is not None:
         from ..evaluation.surfaces import material_metrics
 
         metrics["materials"] = material_metrics(run.model, run.scene, factor=grid_factor, air_threshold=air_threshold,
@@ -120,7 +139,7 @@ def main(argv=None) -> None:
         out = output_folder(run.run_dir, args.output, f"eval-{timestamp()}")
         t0 = time.perf_counter()
         metrics, proj, vol = evaluate_run(run, device=device, surfaces=not args.no_surfaces, grid_factor=args.grid_factor,
-                                          air_threshold=args.air_threshold, shells=not args.keep_shells)
+                                          air_threshold=args.air_threshold, shells=not args.keep_shells, materials=args.materials)
         report = {
             "method": run.config.method,
             "run_dir": str(run.run_dir),

@@ -422,7 +422,8 @@ def threshold_fields(volume, boundaries: Sequence[float], air_cut: float) -> np.
 
 def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int = 4, k_rule: str = "bic", min_std: float = 0.0,
                             restarts: int = 1, surfaces: bool = True, shells: bool = False, fit_values=None,
-                            fit_values_are: str = "") -> dict[str, Any]:
+                            fit_values_are: str = "", boundaries: Optional[Sequence[float]] = None,
+                            boundaries_are: str = "") -> dict[str, Any]:
     """Per-material Dice and surface errors of a voxel volume [nx, ny, nz] (data units; a
     classical reconstruction or a NAF field sampled at the voxel centres), segmented the way a
     user would: thresholds at the automatic GMM bounds fitted on the volume itself
@@ -435,21 +436,32 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
     classical volume does; ``benchmarks/classical.py --shells`` scores both ways). ``fit_values``: the
     values the bounds are fitted on instead of the volume's (the refine-classical procedure's at-noise
     rule fits a noisy start after a filter; ``fit_values_are`` says what they are); the volume itself is
-    thresholded. Same keys as :func:`material_metrics`, plus ``boundaries`` and ``air_cut``."""
+    thresholded. ``boundaries`` [K + 1]: thresholds given instead of the GMM's (a K-material model's own
+    bounds, ``kneas-eval --materials values``; ``boundaries_are`` says whose), air then below half the mean of
+    the volume's values in the first class. Same keys as :func:`material_metrics`, plus ``boundaries`` and
+    ``air_cut``."""
     from ..bounds import GMMBounds
 
     _check_labels(scene)
     vol = np.asarray(volume, dtype=np.float32)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the GMM's remarks are kept in the result's notes
-        gmm = GMMBounds(random_state=int(seed), max_components=max_components, k_rule=k_rule, min_std=min_std,
-                        n_init=int(restarts)).fit(vol if fit_values is None else np.asarray(fit_values, dtype=np.float32))
-    boundaries = [float(x) for x in gmm.boundaries_]
-    air_cut = 0.5 * float(gmm.means_[0])
+    boundaries_given = boundaries is not None
+    if not boundaries_given:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the GMM's remarks are kept in the result's notes
+            gmm = GMMBounds(random_state=int(seed), max_components=max_components, k_rule=k_rule, min_std=min_std,
+                            n_init=int(restarts)).fit(vol if fit_values is None else np.asarray(fit_values, dtype=np.float32))
+        boundaries = [float(x) for x in gmm.boundaries_]
+        centres = [float(m) for m in gmm.means_]
+    else:
+        boundaries = [float(x) for x in boundaries]
+        centres = [0.5 * (lo + hi) for lo, hi in zip(boundaries[:-1], boundaries[1:])]
+        first = vol[(vol >= boundaries[0]) & (vol < boundaries[1])]
+        if first.size:
+            centres[0] = float(first.mean())
+    air_cut = 0.5 * centres[0]
     pred = threshold_labels(vol, boundaries, air_cut)
     K = len(boundaries) - 1
-    mean_mu = np.array([float(vol[pred == k + 1].mean()) if (pred == k + 1).any() else float(gmm.means_[k])
-                        for k in range(K)])
+    mean_mu = np.array([float(vol[pred == k + 1].mean()) if (pred == k + 1).any() else centres[k] for k in range(K)])
     fields = threshold_fields(vol, boundaries, air_cut)
     moved: dict[str, dict] = {}
     if shells:
@@ -458,15 +470,18 @@ def volume_material_metrics(volume, scene, *, seed: int = 0, max_components: int
         fields = relabel_fields(fields, pred, cleaned)
         pred = cleaned
     fitted_on = "the volume" if fit_values is None else (fit_values_are or "values given beside the volume")
-    definition = (f"labels: thresholds at the GMM bounds fitted on {fitted_on} (K = 1..{max_components} by {k_rule}, min_std {min_std:g}, "
-                  f"{restarts} start(s)), air below half the lowest class mean; "
+    thresholds = (f"thresholds at the GMM bounds fitted on {fitted_on} (K = 1..{max_components} by {k_rule}, min_std {min_std:g}, "
+                  f"{restarts} start(s))" if not boundaries_given else f"thresholds at {boundaries_are or 'given bounds'}")
+    definition = (f"labels: {thresholds}, air below half the lowest class mean; "
                   + ("partial-volume shells relabelled as for a model's; " if shells else "") +
                   "class k -> GT label with the nearest attenuation level (air at 0 included) to the class's mean mu; surfaces: iso-surfaces of the "
                   "thresholds (marching cubes on the voxel grid) vs exact membership on a grid refined by 2, mm")
-    settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "notes": list(gmm.warnings_),
-                "shells_relabelled": bool(shells), "shell_cells_moved": moved,
-                "gmm": {"max_components": max_components, "k_rule": k_rule, "k_rule_used": gmm.k_rule_used_, "min_std": min_std,
-                        "restarts": int(restarts), "fitted_on": fitted_on}}
+    settings = {"boundaries": boundaries, "air_cut": air_cut, "K": K, "shells_relabelled": bool(shells), "shell_cells_moved": moved}
+    if boundaries_given:
+        settings["boundaries_are"] = boundaries_are or "given"
+    else:
+        settings.update(notes=list(gmm.warnings_), gmm={"max_components": max_components, "k_rule": k_rule, "k_rule_used": gmm.k_rule_used_,
+                                                        "min_std": min_std, "restarts": int(restarts), "fitted_on": fitted_on})
     return _score_materials(scene, pred, mean_mu, (lambda fgeo: fields) if surfaces else None, fine=2,
                             definition=definition, settings=settings, field_geometry=scene.geometry)
 
