@@ -49,13 +49,13 @@ def test_eval_writes_metrics_and_figures(run_dir, capsys):
 
 def test_eval_reads_materials_from_the_values_at_the_models_bounds(run_dir, tmp_path):
     """``--materials values``: the model's volume thresholded at its own bounds, scored as a classical volume is
-    (the same Dice as thresholding the exported volume by hand)."""
+    (the same Dice as thresholding the exported volume by hand; no shells relabelled, as for a classical volume)."""
     from kneas_method.engine.loading import load_run
     from kneas_method.evaluation.metrics import dice
     from kneas_method.evaluation.surfaces import gt_levels, match_materials, threshold_labels
 
     out = tmp_path / "values"
-    assert _cli([str(run_dir), "--materials", "values", "--keep-shells", "--no-figures", "--no-surfaces", "-o", str(out)]) == 0
+    assert _cli([str(run_dir), "--materials", "values", "--no-figures", "--no-surfaces", "-o", str(out)]) == 0
     mat = json.loads((out / "metrics.json").read_text())["materials"]
     run = load_run(str(run_dir), device="cpu")
     alphas, betas = run.model.bounds

@@ -48,8 +48,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--materials", choices=MATERIAL_READOUTS, default="surfaces",
                    help="how an SDF model's materials are read: surfaces (default, the paper's): each point belongs to the material "
                         "its signed distance fields show there; values: its volume thresholded at the model's own attenuation bounds, "
-                        "as a classical volume is thresholded at its own (real anatomy's texture is held by mixing materials, "
-                        "so the fields' labels can disagree with the values)")
+                        "and scored as a classical volume is (no shells relabelled; real anatomy's texture is held by mixing "
+                        "materials, so the fields' labels can disagree with the values)")
     p.add_argument("--figure-views", type=int, default=3, help="held-out views drawn as figures (default 3; 0 = none)")
     p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
     return p
@@ -74,7 +74,7 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
 
         alphas, betas = run.model.bounds
         metrics["materials"] = volume_material_metrics(vol, run.scene, boundaries=[*betas, betas[-1] + alphas[-1]],
-                                                       boundaries_are="the model's own attenuation bounds", shells=shells,
+                                                       boundaries_are="the model's own attenuation bounds",
                                                        surfaces=surfaces and run.scene.membership is not None)
         metrics["materials"]["readout"] = "values"
     elif run.has_surfaces and run.scene.labels is not None:
