@@ -143,8 +143,10 @@ def tissue_rows(volume, box, scene, views: tuple, shells: bool, suffix: str = ""
     k-neas's start (``*_cpu_rule``; ``cpu_rule`` says which); with ``shells``, the same again with the
     partial-volume shells relabelled (keys ending in ``_shells``). Every key ends in ``suffix``. Whether the
     volume fits the views to their noise, and the filtered values the at-noise rule fits, are computed once."""
+    from types import SimpleNamespace
+
     import numpy as np
-    from kneas_method.engine.bounds_stage import histogram_smoothing
+    from kneas_method.engine.bounds_stage import at_noise_k_rule, histogram_smoothing
     from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.stages.band_correction import volume_at_noise
     from kneas_method.stages.procedures import REFINE_CLASSICAL
@@ -153,8 +155,11 @@ def tissue_rows(volume, box, scene, views: tuple, shells: bool, suffix: str = ""
     vol = np.ascontiguousarray(box.crop(torch.as_tensor(volume).cpu().numpy()))
     surfaces = scene.membership is not None
     at_noise = volume_at_noise(volume, *views)[0]
-    rule = cpu["bounds_at_noise_k_rule"] if at_noise else cpu["bounds_k_rule"]
-    fit_values = histogram_smoothing(vol) if at_noise else None
+    # the rule estimate_bounds picks for a start at the views' noise (K not given), and the filtered values it fits then
+    noisy_rule = at_noise_k_rule(SimpleNamespace(bounds_at_noise_k_rule=cpu.get("bounds_at_noise_k_rule"),
+                                                 bounds_k_rule=cpu["bounds_k_rule"], num_materials=None)) if at_noise else None
+    rule = noisy_rule or cpu["bounds_k_rule"]
+    fit_values = histogram_smoothing(vol) if noisy_rule else None
     row = {}
     for tail, relabel in [("", False)] + ([("_shells", True)] if shells else []):
         tail += suffix
@@ -166,7 +171,7 @@ def tissue_rows(volume, box, scene, views: tuple, shells: bool, suffix: str = ""
         mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
                                      min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"], surfaces=surfaces,
                                      shells=relabel, fit_values=fit_values,
-                                     fit_values_are="the volume after the bounds' edge-preserving filter" if at_noise else "")
+                                     fit_values_are="the volume after the bounds' edge-preserving filter" if noisy_rule else "")
         row["cpu_rule" + tail] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
         row["dice_cpu_rule" + tail] = {k: round(v["dice"], 3) for k, v in mv["materials"].items()}
         row["dice_mean_cpu_rule" + tail] = mv["dice_mean"]
