@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from kneas_method.cli import eval as eval_cli
+from kneas_method.errors import KneasError
 from conftest import foot_scene_file, write_run
 
 
@@ -71,6 +72,8 @@ def test_eval_reads_materials_from_the_values_at_the_models_bounds(run_dir, tmp_
     mapped = np.concatenate([[0], matching])[labels]
     for entry in mat["materials"].values():
         assert entry["dice"] == pytest.approx(dice(mapped, run.scene.labels, entry["label"]))
+    with pytest.raises(KneasError, match="no material reading 'value'"):  # from Python too, not only through --materials' choices
+        eval_cli.evaluate_run(run, device="cpu", materials="value")
 
 
 def test_eval_checkpoint_and_output(run_dir, tmp_path):

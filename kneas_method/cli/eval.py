@@ -26,6 +26,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Literal, get_args
 
 from ..errors import KneasError
 from .common import ArgumentParser, run_cli
@@ -55,15 +56,18 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-MATERIAL_READOUTS = ("surfaces", "values")
+MaterialReadout = Literal["surfaces", "values"]
+MATERIAL_READOUTS = get_args(MaterialReadout)
 
 
 def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, air_threshold: float = 0.5, shells: bool = True,
-                 materials: str = "surfaces"):
+                 materials: MaterialReadout = "surfaces"):
     """``(metrics dict, projections [N, nV, nU], volume [nx, ny, nz] or None)`` of a loaded run; ``materials``: how an
     SDF model's materials are read (:data:`MATERIAL_READOUTS`, the ``--materials`` help)."""
     from ..engine.evaluate import evaluate_model, evaluate_volume
 
+    if materials not in MATERIAL_READOUTS:
+        raise KneasError(f"no material reading {materials!r}: choose one of {', '.join(MATERIAL_READOUTS)}")
     _say(f"held-out views and volume: {len(run.scene.val)} views, {run.scene.geometry.n_voxel} voxels")
     if run.model is None:
         metrics, (proj, vol) = evaluate_volume(run.volume, run.scene, return_arrays=True, fitted=run.fitted)
