@@ -143,22 +143,22 @@ def tissue_rows(volume, box, scene, views: tuple, shells: bool, suffix: str = ""
     k-neas's start (``*_cpu_rule``; ``cpu_rule`` says which); with ``shells``, the same again with the
     partial-volume shells relabelled (keys ending in ``_shells``). Every key ends in ``suffix``. Whether the
     volume fits the views to their noise, and the filtered values the at-noise rule fits, are computed once."""
-    from types import SimpleNamespace
+    import dataclasses
 
     import numpy as np
+    from kneas_method import presets, registry
     from kneas_method.engine.bounds_stage import at_noise_k_rule, histogram_smoothing
     from kneas_method.evaluation.surfaces import volume_material_metrics
     from kneas_method.stages.band_correction import volume_at_noise
-    from kneas_method.stages.procedures import REFINE_CLASSICAL
 
-    cpu = REFINE_CLASSICAL.settings["run"]  # the K rule the cpu preset's procedure gives k-neas, from its one definition
+    # the bounds settings of the default k-neas run on the cpu preset, resolved as kneas-train resolves them
+    cpu = presets.resolve(dataclasses.replace(registry.load("methods", "k-neas").config, preset="cpu"))
     vol = np.ascontiguousarray(box.crop(torch.as_tensor(volume).cpu().numpy()))
     surfaces = scene.membership is not None
     at_noise = volume_at_noise(volume, *views)[0]
     # the rule estimate_bounds picks for a start at the views' noise (K not given), and the filtered values it fits then
-    noisy_rule = at_noise_k_rule(SimpleNamespace(bounds_at_noise_k_rule=cpu.get("bounds_at_noise_k_rule"),
-                                                 bounds_k_rule=cpu["bounds_k_rule"], num_materials=None)) if at_noise else None
-    rule = noisy_rule or cpu["bounds_k_rule"]
+    noisy_rule = at_noise_k_rule(cpu) if at_noise else None
+    rule = noisy_rule or cpu.bounds_k_rule
     fit_values = histogram_smoothing(vol) if noisy_rule else None
     row = {}
     for tail, relabel in [("", False)] + ([("_shells", True)] if shells else []):
@@ -168,8 +168,8 @@ def tissue_rows(volume, box, scene, views: tuple, shells: bool, suffix: str = ""
         row["dice_mean" + tail] = mm["dice_mean"]
         row["chamfer_mm_mean" + tail] = mm.get("chamfer_mm_mean")
         row["chamfer_mm" + tail] = per_material_chamfer(mm)
-        mv = volume_material_metrics(vol, scene, max_components=cpu["bounds_max_materials"], k_rule=rule,
-                                     min_std=cpu["bounds_min_std"], restarts=cpu["bounds_gmm_restarts"], surfaces=surfaces,
+        mv = volume_material_metrics(vol, scene, max_components=cpu.bounds_max_materials, k_rule=rule,
+                                     min_std=cpu.bounds_min_std, restarts=cpu.bounds_gmm_restarts, surfaces=surfaces,
                                      shells=relabel, fit_values=fit_values,
                                      fit_values_are="the volume after the bounds' edge-preserving filter" if noisy_rule else "")
         row["cpu_rule" + tail] = {"k_rule": rule, "k_rule_used": mv["gmm"]["k_rule_used"], "K": mv["K"], "at_noise": at_noise}
