@@ -275,6 +275,43 @@ def test_a_run_smooths_a_noisy_scan_and_records_it(tmp_path, capsys):
     assert state["extra"]["stages"]["smoothing"] == record
 
 
+@pytest.mark.parametrize("fit", ["as-built", "away"])
+def test_a_smoothing_fit_that_ends_further_from_its_target_is_undone(tmp_path, capsys, monkeypatch, fit):
+    """The smoothing's fit is kept where it brings the model closer to the smoothed volume (the stage's own
+    fit on a noisy scan), and undone where it ends further from it (a fit replaced here by one that pushes
+    the model's weights away): the run then ends with the model it had after training, the smoothing's
+    score equal to training's."""
+    import torch
+
+    import kneas_method.stages.smoothing as smoothing
+    from kneas_method.data.naf import save_naf
+    from kneas_method.data.simulate import SimulationConfig
+
+    if fit == "away":
+        def push_away(trainer, *args, **kwargs):
+            with torch.no_grad():
+                for p in trainer.model.parameters():
+                    p.add_(0.5 * torch.randn_like(p))
+        monkeypatch.setattr(smoothing, "fit_in_region", push_away)
+    scene_path = save_naf(sphere_scene(SimulationConfig(n_voxel=24, voxel_mm=6.0, n_detector=32, n_train=16, n_val=2,
+                                                        noise=True, photons=300.0)), tmp_path / "noisy.pickle")
+    argv = ["k-neas", "--scene", str(scene_path), "--preset", "tiny", "--device", "cpu", "--num-materials", "2",
+            "--output-dir", str(tmp_path / "out"), "--procedure", "paper", "--add-stages", "smoothing",
+            "--trainer.epochs", "4", "--stages.smoothing.points", "512"]  # the fit at its default 300 steps and rate
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    metrics = json.loads((run_dir_of(out) / "metrics.json").read_text())
+    record = metrics["stages"]["smoothing"]
+    assert record["filter"] != "none"  # this scene's noise is smoothed
+    kept = fit == "as-built"
+    assert record["fit_kept"] is kept, (record["fit_distance_before"], record["fit_distance_after"])
+    assert (record["fit_distance_after"] < record["fit_distance_before"]) is kept
+    scores = {s["after"]: (s["psnr3d"], s["ssim3d"]) for s in metrics["stage_scores"]}
+    assert (scores["smoothing"] == scores["training"]) is (not kept)
+    assert ("put back as it was" in out) is (not kept)
+    assert metrics["psnr3d"] == pytest.approx(scores["smoothing"][0], abs=0.05)  # the run ends with the model the stage left
+
+
 def test_smoothing_settings_and_older_runs(capsys):
     import dataclasses
 

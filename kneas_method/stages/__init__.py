@@ -52,7 +52,7 @@ class StagesConfig:
         warm_start: the fresh model fitted to the classical start before training.
         anchor: the classical start kept as a prior during training.
         correction: band-correction passes after training (surface models).
-        smoothing: SURE-chosen smoothing after training, the model fitted to it.
+        smoothing: SURE-chosen smoothing after training, the model fitted to it (undone where it ends further from it).
         materials_refit: a noisy scan's materials found again on the trained volume (surface models).
         plugins: settings of stages from plugins (``kneas.stages``), by stage name (config files only).
     """

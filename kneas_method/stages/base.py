@@ -190,6 +190,10 @@ class RunState:
         """A fit moved the field in ``region`` [nx, ny, nz] (bool): :meth:`model_volume` queries it again there."""
         self.moved_region = region if self.moved_region is None else (self.moved_region | region)
 
+    def put_back(self, volume) -> None:
+        """The model was put back as it was when its volume was ``volume`` (a fit undone): no query needed."""
+        self.volume, self.moved_region = volume, None
+
     def forget_volume(self) -> None:
         """The model changed everywhere (a new model): :meth:`model_volume` queries the whole grid again."""
         self.volume = self.moved_region = None

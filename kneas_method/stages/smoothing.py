@@ -7,7 +7,9 @@ correlated noise, raising the noise estimate while the smoothed volume's project
 training views closer than their noise (the discrepancy principle), and refusing a filter whose
 projections fit the views worse than the unsmoothed volume's by more than their noise (it would take
 out texture the views show). Where no filter lowers the estimate, or the one that does is refused
-(a clean scan), the volume is left as it is and the model is not touched.
+(a clean scan), the volume is left as it is and the model is not touched. Where the model's fit to
+the smoothed volume ends further from it than the model was before the fit (a lightly noisy scan,
+where the filter moves the volume less than a fresh fit shakes the model), the fit is undone.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ class SmoothingConfig(StageConfig):
     curvature: float = field(default=3e-3, metadata=at_least(0))
 
     def describe(self) -> str:
-        return "smoothing: the volume smoothed as far as SURE says its noise allows (nothing on a clean scan), the model fitted to it"
+        return ("smoothing: the volume smoothed as far as SURE says its noise allows (nothing on a clean scan), the model fitted to it "
+                "(undone where it ends further from it)")
 
 
 def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projector, rule: SmoothingRule = "sure",
@@ -107,6 +110,14 @@ def describe_choice(choice) -> list[str]:
     return lines
 
 
+def describe_fit(before: float, after: float, kept: bool) -> str:
+    """The smoothing fit's outcome in a line: the squared distance (summed over the fitted voxels) of
+    the model's volume to the smoothed one ``before`` and ``after`` the fit, and whether it was ``kept``."""
+    head = f"the fit leaves {after:.4g} of the smoothed volume (squares summed) against {before:.4g} before it"
+    return head + (": kept" if kept else ": it ended further from its target than where it began, so the model is put back "
+                   "as it was (the volume left unsmoothed)")
+
+
 class Smoothing(Stage):
     def run(self, state: RunState) -> None:
         c, trainer, scene = self.config, state.trainer, state.scene
@@ -118,11 +129,21 @@ class Smoothing(Stage):
         smoothed, choice = smooth_against_views(volume, state.views(), state.projector(), c.rule)
         for line in describe_choice(choice):
             state.say("smoothing: " + line)
+        record = choice.to_json()
         if choice.filter != "none":
             what = filter_words(choice)
-            region = (volume != 0).cpu().numpy()
-            fit_in_region(trainer, smoothed.clamp_min(0).cpu().numpy(), region, int(c.steps), int(c.points), float(c.lr),
+            target, region = smoothed.clamp_min(0), volume != 0
+            before = float(((volume - target)[region] ** 2).sum())
+            weights = {k: v.detach().clone() for k, v in trainer.model.state_dict().items()}
+            fit_in_region(trainer, target.cpu().numpy(), region.cpu().numpy(), int(c.steps), int(c.points), float(c.lr),
                           curvature=float(c.curvature), what=f"the volume smoothed by {what}", stage="smoothing")
-            state.moved(volume != 0)
-        state.records[self.name] = {**choice.to_json(), "seconds": time.perf_counter() - started}
+            state.moved(region)
+            after = float(((state.model_volume() - target)[region] ** 2).sum())
+            kept = after < before
+            state.say("smoothing: " + describe_fit(before, after, kept))
+            if not kept:
+                trainer.model.load_state_dict(weights)
+                state.put_back(volume)
+            record.update(fit_distance_before=before, fit_distance_after=after, fit_kept=kept)
+        state.records[self.name] = {**record, "seconds": time.perf_counter() - started}
         trainer.save(complete=True)
