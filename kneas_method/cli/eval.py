@@ -74,10 +74,11 @@ def evaluate_run(run, *, device, surfaces: bool = True, grid_factor: int = 2, ai
     else:
         metrics, (proj, vol) = evaluate_model(run.model, run.scene, run.config, device, return_arrays=True)
     if run.has_surfaces and run.scene.labels is not None and materials == "values" and vol is not None:
+        from ..bounds import Bounds
         from ..evaluation.surfaces import volume_material_metrics
 
         alphas, betas = run.model.bounds
-        metrics["materials"] = volume_material_metrics(vol, run.scene, boundaries=[*betas, betas[-1] + alphas[-1]],
+        metrics["materials"] = volume_material_metrics(vol, run.scene, boundaries=list(Bounds(tuple(alphas), tuple(betas)).boundaries),
                                                        boundaries_are="the model's own attenuation bounds",
                                                        surfaces=surfaces and run.scene.membership is not None)
         metrics["materials"]["readout"] = "values"
