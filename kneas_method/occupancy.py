@@ -8,7 +8,8 @@ are dilated on the detector (a cell is wider than the point at its centre; grazi
 rays near an object's edge read little) and the carved grid is dilated by a cell.
 Nothing is learned, no reconstruction is needed, and material is never carved away
 as long as air pixels are recognised (noise-aware threshold, see
-``datamanagers.ct.noise_air_threshold``); cavities inside the object stay occupied.
+``datamanagers.ct.noise_air_threshold``, on noisy views averaged over a few pixels first, see
+``engine.visual_hull.air_test_views``); cavities inside the object stay occupied.
 
 Used by :class:`~kneas_method.model.CTModel` (``model.occupancy_grid``) to put every
 sample of a ray inside the occupied stretch of the ray (:func:`ray_intervals`) and to
