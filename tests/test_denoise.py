@@ -13,8 +13,8 @@ import torch
 from scipy import ndimage
 
 from conftest import run, run_dir_of, sphere_scene
-from kneas_method.stages.denoise import (BILATERAL_TRUNCATE, GIVE_UP, NOISE_SCALES, SIGMAS, bilateral, correlated_noise, discrepancy_smoothing,
-                                  gaussian_blur, gaussian_taps, monte_carlo_sure, noise_autocovariance, robust_variance,
+from kneas_method.stages.denoise import (BAND_EDGES, BAND_FLOOR, BILATERAL_TRUNCATE, GIVE_UP, NOISE_SCALES, SIGMAS, band_power_ratios,
+                                  bilateral, correlated_noise, discrepancy_smoothing, gaussian_blur, gaussian_taps, monte_carlo_sure, noise_autocovariance, robust_variance,
                                   shifted_pairs, sure, sure_smoothing)
 
 
@@ -216,6 +216,55 @@ def test_discrepancy_raises_the_noise_estimate_while_the_choice_fits_the_data_cl
     calls.clear()
     smoothed, choice = discrepancy_smoothing(torch.as_tensor(clean), misfit, noise_variance)
     assert choice.filter == "none" and not calls and choice.misfit == []
+
+
+def test_band_power_ratios_read_white_noise_as_one_and_a_fitted_share_as_less():
+    g = torch.Generator().manual_seed(0)
+    white = 0.1 * torch.randn(24, 64, 80, generator=g)
+    ratios = band_power_ratios(white, 0.01, footprint=1.5)
+    assert len(ratios) == len(BAND_EDGES) - 1 and all(abs(r - 1) < 0.06 for r in ratios), ratios
+    # a volume that fitted the noise's finer half leaves only its smooth part: the upper bands fall
+    smooth = torch.nn.functional.avg_pool2d(white[:, None], 5, stride=1, padding=2)[:, 0]
+    low = band_power_ratios(smooth, 0.01, footprint=1.5)
+    assert low[-1] < 0.2 and low[0] > low[-1]
+    # the naive DFT sum at one band (the oracle)
+    r = torch.randn(2, 8, 10, generator=g, dtype=torch.float64)
+    total, count = 0.0, 0
+    for v in range(8):
+        for u in range(10):
+            fv, fu = (v if v < 4 else v - 8) / 8, (u if u < 5 else u - 10) / 10
+            if 0.25 <= (fu * fu + fv * fv) ** 0.5 * 1.0 < 0.4:
+                for n in range(2):
+                    z = sum(complex(r[n, j, i]) * np.exp(-2j * np.pi * (fv * j + fu * i)) for j in range(8) for i in range(10))
+                    total += abs(z) ** 2 / 80
+                    count += 1
+    assert band_power_ratios(r, 2.0, footprint=1.0, edges=(0.25, 0.4))[0] == pytest.approx(total / count / 2.0)
+    assert np.isnan(band_power_ratios(r, 2.0, footprint=1.0, edges=(0.9, 1.0))[0])  # no frequency that high
+
+
+def test_a_choice_within_the_whole_misfit_is_raised_while_a_detector_band_still_fits_closer_than_the_noise():
+    """The whole misfit carries a floor of the volume's own (a model that misses the data's smoothest
+    part); the band's power does not, and shows the noise the volume fitted."""
+    clean = _balls()
+    noise = _correlated_noise(clean.shape, 0.03, 0.7, seed=5)
+    noise[:, :32] *= 4
+    noisy = torch.as_tensor(clean + noise)
+    noise_variance = float((noise.astype(np.float64) ** 2).mean())
+
+    def fitted(v):  # the data are the noisy volume itself (an identity projector)
+        return float(((v - noisy) ** 2).mean()) / noise_variance
+
+    first, _ = sure_smoothing(noisy)
+    floor = 1.0 - fitted(first) + 0.01  # enough to lift the first choice's whole misfit over the noise
+    whole = lambda v: (fitted(v) + floor) * noise_variance
+    smoothed, choice = discrepancy_smoothing(noisy, whole, noise_variance)
+    assert torch.equal(smoothed, first) and choice.noise_scale == 1.0 and choice.band_fit == [None]
+    smoothed, choice = discrepancy_smoothing(noisy, whole, noise_variance, band_fit=fitted)
+    assert choice.noise_scale > 1.0 and choice.band_fit[0] == pytest.approx(fitted(first)) and choice.band_fit[0] < BAND_FLOOR
+    assert choice.band_fit[-1] >= BAND_FLOOR or choice.noise_scale == NOISE_SCALES[-1]
+    error = lambda v: float(((v.numpy() - clean) ** 2).sum())
+    assert error(smoothed) < 0.6 * error(first)
+    assert choice.to_json()["band_fit_over_noise"][0] == round(fitted(first), 4)
 
 
 def test_a_filter_that_gives_up_more_fit_than_the_noise_is_refused():

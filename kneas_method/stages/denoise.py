@@ -42,6 +42,13 @@ that choice's projections still fit the data closer than the data's noise varian
 of ``NOISE_SCALES`` and chooses again. On a scan where the choice already reaches the noise, nothing
 changes; on a clean scan (SURE chooses none) the projections are not even compared.
 
+The whole misfit can hide it: a model trained on a real scan misses the smoothest part of the data
+(its residual's power at the lowest detector frequencies, under a twentieth of a cycle a pixel, is 3-6 times the
+noise), which lifts the whole misfit over the noise while the same volume fits the finer bands closer
+than their noise (0.91-0.95 of it at 5e4-1e5 photons). So the choice must also reach
+``BAND_FLOOR`` of the noise in every band of ``BAND_EDGES`` (:func:`band_power_ratios`), where a
+voxel's noise shows on the detector; white noise reads 1 in each.
+
 The projections also tell when SURE takes signal for noise: texture that varies from voxel to voxel
 (real anatomy) looks like correlated noise to the robust spread. Taking noise out of a volume can
 worsen its fit to the data by at most the data's noise variance (the noise it had fitted); a filter
@@ -67,7 +74,7 @@ from .band_correction import MAD_TO_STD
 
 __all__ = ["OFFSETS", "SIGMAS", "BILATERALS", "gaussian_taps", "gaussian_blur", "bilateral", "shifted_pairs",
            "robust_variance", "noise_autocovariance", "correlated_noise", "sure", "monte_carlo_sure", "sure_smoothing",
-           "discrepancy_smoothing", "Denoising", "NOISE_SCALES", "GIVE_UP"]
+           "discrepancy_smoothing", "band_power_ratios", "Denoising", "NOISE_SCALES", "GIVE_UP", "BAND_EDGES", "BAND_FLOOR"]
 
 OFFSETS = [k for k in itertools.product((-1, 0, 1), repeat=3)]  # the 27 offsets of c(k), (0, 0, 0) among them
 SIGMAS = tuple(round(0.4 + 0.1 * i, 1) for i in range(12))  # 0.4 .. 1.5 voxels: the candidates besides 0
@@ -78,6 +85,8 @@ GUIDE_SIGMA = 0.8  # voxels: the Gaussian that smooths the bilateral's guide (it
 PROBE_STEP = 0.1  # the Monte Carlo divergence's finite difference, in the probe's (the noise's) standard deviations
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 4.0)  # the noise estimate's factors discrepancy_smoothing tries in turn
 GIVE_UP = 1.0  # data noise variances of fit a smoothing may give up over the unsmoothed volume's misfit
+BAND_EDGES = (0.15, 0.25, 0.35, 0.5)  # cycles per voxel's footprint on the detector: the bands where a volume's noise shows
+BAND_FLOOR = 0.98  # a band of the residual under this share of the data's noise holds noise the volume fitted
 MEDIAN_VALUES_AT_MOST = 1 << 21  # a median of more values takes every n-th (a 256^3 grid: 8x fewer, 3x faster)
 
 
@@ -213,6 +222,25 @@ def monte_carlo_sure(volume: torch.Tensor, smoother, smoothed: torch.Tensor, pro
     return float(((smoothed.double() - volume.double()) ** 2).sum()) - region * c0 + 2.0 * divergence
 
 
+def band_power_ratios(residual: torch.Tensor, noise_variance: float, footprint: float,
+                      edges: Sequence[float] = BAND_EDGES) -> list[float]:
+    """The mean power of projections ``residual`` [N, nV, nU] in each band of detector frequency between
+    consecutive ``edges`` (cycles per ``footprint``, a voxel's width on the detector in pixels; the
+    radial frequency of each view's 2-D DFT), over ``noise_variance`` (per pixel): ``[len(edges) - 1]``.
+    White noise of that variance gives 1 in every band; a volume that fitted part of the data's noise
+    leaves less than 1 where it did. A band that holds no frequency gives ``nan``."""
+    power = torch.fft.fft2(residual.double()).abs().pow(2) / (residual.shape[-2] * residual.shape[-1])
+    fv = torch.fft.fftfreq(residual.shape[-2], dtype=torch.float64, device=residual.device)[:, None]
+    fu = torch.fft.fftfreq(residual.shape[-1], dtype=torch.float64, device=residual.device)[None, :]
+    per_voxel = torch.sqrt(fu * fu + fv * fv) * float(footprint)
+    ratios = []
+    for low, high in zip(edges[:-1], edges[1:]):
+        band = (per_voxel >= low) & (per_voxel < high)
+        ratios.append(float(power[:, band].mean()) / float(noise_variance) if bool(band.any()) and noise_variance > 0
+                      else float("nan"))
+    return ratios
+
+
 def _label(kind: str, sigma: float = 0.0, range_stds: float = 0.0) -> str:
     """A candidate's name: ``none``, ``gaussian 0.8``, ``bilateral 3 x1.5`` (sigma, range in noise stds)."""
     return {"none": "none", "gaussian": f"gaussian {sigma:g}"}.get(kind, f"bilateral {sigma:g} x{range_stds:g}")
@@ -227,8 +255,9 @@ class Denoising:
     (their mean), and the ``region``'s voxel count; from :func:`discrepancy_smoothing`, the
     ``misfit`` of each choice it tried (its projections' mean-square misfit over the data's noise
     variance, in the order of ``NOISE_SCALES``), the unsmoothed volume's own misfit in the same unit
-    (``own_misfit``) and the first choice refused for giving up more fit than the noise (``refused``, its
-    label; empty when none was)."""
+    (``own_misfit``), the first choice refused for giving up more fit than the noise (``refused``, its
+    label; empty when none was) and, for each accepted choice, its residual's smallest band power ratio
+    (``band_fit``, None where not asked)."""
 
     filter: str
     sigma: float = 0.0
@@ -242,6 +271,7 @@ class Denoising:
     misfit: list = field(default_factory=list)
     own_misfit: Optional[float] = None
     refused: str = ""
+    band_fit: list = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {"filter": self.filter, "sigma_voxels": self.sigma, "range_noise_stds": self.range_stds,
@@ -249,6 +279,7 @@ class Denoising:
                 "region_voxels": self.region, "sure": dict(self.sure), "noise_scale": self.noise_scale,
                 "misfit": [{"noise_scale": m, "choice": label, "misfit_over_noise": round(r, 4)} for m, label, r in self.misfit],
                 "own_misfit_over_noise": None if self.own_misfit is None else round(self.own_misfit, 4),
+                "band_fit_over_noise": [None if b is None else round(b, 4) for b in self.band_fit],
                 "refused": self.refused, "seconds": round(self.seconds, 2)}
 
     @property
@@ -306,7 +337,8 @@ def sure_smoothing(volume: torch.Tensor, mask: Optional[torch.Tensor] = None, si
 def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor], float], data_noise: float,
                           mask: Optional[torch.Tensor] = None, scales: Sequence[float] = NOISE_SCALES,
                           sigmas: Sequence[float] = SIGMAS, bilaterals: Sequence[tuple[float, float]] = BILATERALS,
-                          seed: int = 0, give_up: float = GIVE_UP) -> tuple[torch.Tensor, Denoising]:
+                          seed: int = 0, give_up: float = GIVE_UP, band_fit: Optional[Callable[[torch.Tensor], float]] = None,
+                          band_floor: float = BAND_FLOOR) -> tuple[torch.Tensor, Denoising]:
     """:func:`sure_smoothing` of ``volume`` [nx, ny, nz] with its noise estimate raised, by the
     factors ``scales`` in turn, while the choice still fits the data closer than their noise
     (module docstring): ``misfit(smoothed)`` is the mean square of the data minus the projections
@@ -316,14 +348,20 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
     shows no noise). A choice whose misfit exceeds the unsmoothed volume's own by more than
     ``give_up`` x ``data_noise`` is refused and ends it: the last choice accepted before it is
     returned, or the volume as it is (``filter`` none, ``refused`` naming the choice). ``data_noise``
-    <= 0 (nothing known) returns the first choice."""
+    <= 0 (nothing known) returns the first choice.
+
+    ``band_fit`` (None: not asked) gives the smallest of a volume's residual's band power ratios
+    (:func:`band_power_ratios`): a choice reaches the noise only where that is ``band_floor`` or more
+    too. A model that misses the data's smoothest part (its bias) fits their noise at finer detector
+    frequencies all the same, and the whole misfit, dominated by the bias, hides it; each choice's value
+    is kept in ``Denoising.band_fit``."""
     import time
 
     t0 = time.perf_counter()
     volume = volume.float()
     mask = (volume != 0) if mask is None else mask.bool()
     c = noise_autocovariance(volume, mask)  # estimated once, raised for each scale
-    tried, own, refused = [], None, ""
+    tried, bands, own, refused = [], [], None, ""
     accepted = None  # (smoothed, choice) of the last choice within the noise
     for scale in scales:
         smoothed, choice = sure_smoothing(volume, mask, sigmas, bilaterals, seed, noise_scale=scale, autocovariance=c)
@@ -339,14 +377,16 @@ def discrepancy_smoothing(volume: torch.Tensor, misfit: Callable[[torch.Tensor],
             refused = choice.label
             break
         accepted = (smoothed, choice)
-        if ratio >= 1.0:
+        band = None if band_fit is None else float(band_fit(smoothed))
+        bands.append(band)
+        if ratio >= 1.0 and (band is None or band >= band_floor):
             break
     if accepted is None:  # the first choice gave up more than the noise: the volume stays as it is
         none = Denoising("none", sure=choice.sure, noise_std=choice.noise_std, neighbour_correlation=choice.neighbour_correlation,
                          region=choice.region, noise_scale=choice.noise_scale)
         accepted = (volume, none)
     smoothed, choice = accepted
-    choice.misfit, choice.refused = tried, refused
+    choice.misfit, choice.band_fit, choice.refused = tried, bands, refused
     choice.own_misfit = None if own is None else own / float(data_noise)
     choice.seconds = time.perf_counter() - t0
     return smoothed, choice

@@ -4,7 +4,8 @@ noise allows, and the model fitted to the result.
 ``denoise.discrepancy_smoothing`` picks the filter (none, a Gaussian, or an edge-preserving bilateral
 filter) that minimises Stein's unbiased estimate of the volume's squared error under its own
 correlated noise, raising the noise estimate while the smoothed volume's projections still fit the
-training views closer than their noise (the discrepancy principle), and refusing a filter whose
+training views closer than their noise, as a whole or in a band of detector frequency (the discrepancy
+principle), and refusing a filter whose
 projections fit the views worse than the unsmoothed volume's by more than their noise (it would take
 out texture the views show). Where no filter lowers the estimate, or the one that does is refused
 (a clean scan), the volume is left as it is and the model is not touched. Where the model's fit to
@@ -58,21 +59,39 @@ def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projec
                          mask: Optional[torch.Tensor] = None):
     """``volume`` [nx, ny, nz] smoothed as the smoothing stage smooths a model's volume: the filter SURE
     prefers (``rule``), its noise estimate raised while the smoothed volume's projections still fit
-    ``projections`` [N, nV, nU] closer than their noise (``denoise.discrepancy_smoothing``; the noise
-    from the volume's own residual, ``band_correction.noise_variance``). ``projector`` projects a volume
+    ``projections`` [N, nV, nU] closer than their noise, as a whole or in any band of detector frequency
+    where a voxel's noise shows (``denoise.discrepancy_smoothing``, ``denoise.band_power_ratios``; the
+    noise from the volume's own residual, ``band_correction.noise_variance``). ``projector`` projects a volume
     at the views' angles (``classical.projector.Projector``). ``mask`` [nx, ny, nz] (bool): where the
     volume's noise is estimated; None: its non-zero voxels (a model's volume is exactly 0 outside its
     visual hull; a classical one, whose zeros are clamped noise, passes the whole grid). Returns
     ``(smoothed, denoise.Denoising)``; ``benchmarks/classical.py --smooth`` smooths classical volumes so."""
+    import math
+
+    from ..classical.iterative import pixels_per_voxel
     from .band_correction import noise_variance
-    from .denoise import BILATERALS, discrepancy_smoothing
+    from .denoise import BILATERALS, band_power_ratios, discrepancy_smoothing
+
+    last = {}  # the last volume asked about and its residual: its misfit and its bands share one projection
+
+    def residual(v: torch.Tensor) -> torch.Tensor:
+        if last.get("volume") is not v:
+            last["volume"], last["residual"] = v, projections - projector.forward(v.clamp_min(0))
+        return last["residual"]
 
     def misfit(v: torch.Tensor) -> float:
-        r = projections - projector.forward(v.clamp_min(0))
+        r = residual(v)
         return float((r * r).mean())
 
     data_noise = noise_variance(projections - projector.forward(volume))
-    return discrepancy_smoothing(volume, misfit, data_noise, mask=mask, bilaterals=BILATERALS if rule == "sure" else ())
+    footprint = 1.0 / pixels_per_voxel(projector.geometry)  # a voxel's width on the detector, pixels
+
+    def band_fit(v: torch.Tensor) -> float:
+        ratios = [b for b in band_power_ratios(residual(v), data_noise, footprint) if not math.isnan(b)]
+        return min(ratios) if ratios else math.inf
+
+    return discrepancy_smoothing(volume, misfit, data_noise, mask=mask, bilaterals=BILATERALS if rule == "sure" else (),
+                                 band_fit=band_fit)
 
 
 def filter_words(choice) -> str:
@@ -88,7 +107,13 @@ def describe_choice(choice) -> list[str]:
     accepted = choice.misfit[:-1] if choice.refused else choice.misfit  # a refused choice is the last one tried
     raised = accepted[:-1]  # the chosen filter is the last accepted one
     if raised:
-        lines.append("; ".join(f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise" for m, label, r in raised)
+        bands = list(choice.band_fit) + [None] * len(raised)
+
+        def why(i: int, m: float, label: str, r: float) -> str:
+            band = "" if bands[i] is None else f" (its closest detector band {bands[i]:.3f})"
+            return f"{label} (noise estimate x{m:g}) fits the projections to {r:.3f} of their noise{band}"
+
+        lines.append("; ".join(why(i, *t) for i, t in enumerate(raised))
                      + ": closer than the noise, so the volume holds more noise than estimated, and the estimate was raised")
     if choice.refused:
         r = choice.misfit[-1][2]
