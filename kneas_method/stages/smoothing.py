@@ -94,6 +94,18 @@ def smooth_against_views(volume: torch.Tensor, projections: torch.Tensor, projec
                                  band_fit=band_fit)
 
 
+def material_voxels(volume: torch.Tensor, bounds=None) -> torch.Tensor:
+    """The voxels of a model's ``volume`` [nx, ny, nz] whose noise the smoothing estimates: inside the
+    visual hull (not exactly 0) and, given the run's ``bounds`` (``alphas``, ``betas``), at or above the
+    middle of the lowest material's interval: [nx, ny, nz] bool. The model holds the air that the hull
+    keeps at its lowest level, quiet, so a hull that keeps more air would otherwise dilute the estimate
+    (a noisy phantom chest: 0.023 over the hull's 54 % of the box against 0.051 over its material)."""
+    inside = volume != 0
+    if bounds is None:
+        return inside
+    return inside & (volume >= float(bounds.betas[0]) + 0.5 * float(bounds.alphas[0]))
+
+
 def filter_words(choice) -> str:
     """The filter of ``choice`` (a ``denoise.Denoising``) in words."""
     return (f"a Gaussian of {choice.sigma:g} voxel" if choice.filter == "gaussian" else
@@ -151,7 +163,8 @@ class Smoothing(Stage):
             return
         started = time.perf_counter()
         volume = state.model_volume()
-        smoothed, choice = smooth_against_views(volume, state.views(), state.projector(), c.rule)
+        smoothed, choice = smooth_against_views(volume, state.views(), state.projector(), c.rule,
+                                                mask=material_voxels(volume, state.bounds))
         for line in describe_choice(choice):
             state.say("smoothing: " + line)
         record = choice.to_json()
