@@ -379,3 +379,25 @@ def test_smoothing_settings_and_older_runs(capsys):
     assert (gaussian["rule"], gaussian["steps"], gaussian["lr"]) == ("sure-gaussian", 75, 1e-4)
     code, out, err = run(["k-neas", "--scene", "foot", "--preset", "cpu", "--stages.smoothing.steps", "-3", "--dry-run"], capsys)
     assert code == 2 and "--stages.smoothing.steps must be a whole number >= 0, got -3" in err and "Traceback" not in err
+
+
+def test_the_smoothing_estimates_the_noise_of_the_material_not_of_the_quiet_air_the_hull_keeps():
+    """A model holds the air its visual hull keeps at its lowest level, nearly still: over the whole
+    hull the robust noise estimate reads that air; over the material it reads the material's noise."""
+    from types import SimpleNamespace
+
+    from kneas_method.stages.smoothing import material_voxels
+
+    clean = _balls()
+    inside = clean > 0
+    air = 1e-3 + 1e-4 * np.abs(_correlated_noise(clean.shape, 1.0, 0.7, seed=2))  # the hull's air: not 0, quiet
+    noisy = torch.as_tensor(np.where(inside, clean + _correlated_noise(clean.shape, 0.03, 0.7, seed=5), air).astype(np.float32))
+    noisy[:6] = 0.0  # outside the hull
+    bounds = SimpleNamespace(alphas=[0.25, 0.5, 0.5], betas=[0.0, 0.25, 0.75])  # the lowest interval's middle: 0.125
+    mask = material_voxels(noisy, bounds)
+    assert torch.equal(mask, torch.as_tensor(inside) & (noisy >= 0.125)) and bool(mask[torch.as_tensor(inside)].float().mean() > 0.99)
+    assert torch.equal(material_voxels(noisy), noisy != 0)  # no bounds: the hull
+    hull_std = float(noise_autocovariance(noisy, noisy != 0)[1, 1, 1]) ** 0.5
+    material_std = float(noise_autocovariance(noisy, mask)[1, 1, 1]) ** 0.5
+    true_std = float(_correlated_noise(clean.shape, 0.03, 0.7, seed=5)[inside].std())
+    assert material_std == pytest.approx(true_std, rel=0.25) and hull_std < 0.5 * material_std
