@@ -55,11 +55,7 @@ def test_noisy_views_are_smoothed_before_the_air_test_so_faint_real_tissue_is_ke
     """A real abdomen crop at 3e4 photons: a pixel's noise hides the body's outer voxels from the
     raw 3-sigma air test, which carves hundreds of tissue voxels; the smoothed views keep them all.
     Noise-free views are read as they are."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from test_real_anatomy import crop_scene
+    from test_real_anatomy import crop_scene  # the tests' folder is on the path, as for conftest
 
     from kneas_method.data.simulate import simulate_from_volume
 

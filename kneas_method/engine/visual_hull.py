@@ -34,7 +34,7 @@ def air_test_views(projections) -> tuple[np.ndarray, float, int]:
 def set_visual_hull(model, scene, label: str = "model", say=None) -> None:
     """Give ``model`` its empty-space grid: the visual hull of the scene's training views
     (``occupancy.visual_hull``; air = at or below the noise-aware air threshold of
-    ``datamanagers.ct.noise_air_threshold``, read on views smoothed first where they are noisy:
+    ``datamanagers.ct.noise_air_threshold``, read on views averaged over a square of pixels first where they are noisy:
     :func:`air_test_views`); ``say`` receives one line about it."""
     views, threshold, smoothing = air_test_views(scene.train.projections)
     occupied = visual_hull(scene.geometry, scene.train.angles, views,
